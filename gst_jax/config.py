@@ -1,0 +1,85 @@
+"""Typed, frozen configuration for every layer of gst_jax.
+
+Shapes and structural switches live here as static Python values. Hyperparameters that vary
+inside one compiled program (temperature, learning rate, the number of active edge heads,
+the ghost switch) travel as arrays next to the parameters, never through these classes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+SCENES = ("eth", "hotel", "univ", "zara1", "zara2", "lcas", "wildtrack")
+ETH_UCY_SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
+PROTOCOLS = ("paper", "paper-val", "loo")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """How scene windows are cut from raw tracks and grouped into batches.
+
+    Attributes:
+      scene: one of SCENES.
+      protocol: 'paper' (the release's per-file temporal 80/20 split), 'paper-val' (the same,
+        with a validation set carved from the end of each file's train windows and the train
+        windows overlapping it in time removed) or 'loo' (leave-one-scene-out; ETH/UCY only).
+      obs_len: observed steps (8 = 3.2 s).
+      pred_len: predicted steps (12 = 4.8 s).
+      train_fraction: fraction of each file's windows used for training (paper: 0.8).
+      val_fraction: with 'paper-val', fraction of each file's train windows held out.
+      data_dir: folder holding `eth_ucy/` and `trajnetpp/`; None = the bundled `data/`.
+    """
+
+    scene: str = "eth"
+    protocol: str = "paper"
+    obs_len: int = 8
+    pred_len: int = 12
+    train_fraction: float = 0.8
+    val_fraction: float = 0.1
+    data_dir: str | None = None
+
+    @property
+    def seq_len(self) -> int:
+        return self.obs_len + self.pred_len
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Shapes and structural switches of the Gumbel Social Transformer (MODEL.md section 2).
+
+    Attributes:
+      node_dim: d, width of node embeddings and of the LSTM input (32).
+      edge_dim: d_e = 2d, width of edge embeddings (64).
+      max_edge_heads: parameter layout of the edge selector is sized for this many heads;
+        every n dividing it is served by the same parameters (n itself is traced).
+      num_edge_heads: the default n (0 = full connection, no selector); a traced override
+        can be passed to `apply`.
+      ghost: default for the ghost agent switch (traced override possible).
+      encoder_layers / encoder_heads / encoder_ff_dim: node transformer (3, 8, 128).
+      lstm_hidden: hidden width of the masked LSTM (32).
+      dropout: dropout rate of selector MLP and encoder (0.1).
+      output: 'deterministic' (GST (D)) or 'gaussian' (GST (P)).
+      temporal: 'lstm' (paper default) or 'tcn' (the release's temporal-conv readout).
+      obs_len / pred_len: steps observed and predicted.
+    """
+
+    node_dim: int = 32
+    edge_dim: int = 64
+    max_edge_heads: int = 16
+    num_edge_heads: int = 1
+    ghost: bool = True
+    encoder_layers: int = 3
+    encoder_heads: int = 8
+    encoder_ff_dim: int = 128
+    lstm_hidden: int = 32
+    dropout: float = 0.1
+    output: Literal["deterministic", "gaussian"] = "deterministic"
+    temporal: Literal["lstm", "tcn"] = "lstm"
+    obs_len: int = 8
+    pred_len: int = 12
+
+    @property
+    def selector_dim(self) -> int:
+        """Width of an augmented edge [x_j | x_i | e_ji] (4d = 128)."""
+        return 2 * self.node_dim + self.edge_dim
