@@ -83,3 +83,36 @@ class ModelConfig:
     def selector_dim(self) -> int:
         """Width of an augmented edge [x_j | x_i | e_ji] (4d = 128)."""
         return 2 * self.node_dim + self.edge_dim
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """The optimisation schedule (MODEL.md section 3; defaults are the release's).
+
+    Attributes:
+      epochs: number of epochs (200).
+      batch_size: scenes averaged per optimiser step (16).
+      learning_rate: Adam's initial learning rate (1e-3).
+      lr_decay / lr_decay_every: multiply the learning rate by 0.3 every 50 epochs.
+      tau_start / tau_end: Gumbel temperature annealed linearly over the epochs, 0.5 -> 0.03.
+      rotate: random rotation of every training scene.
+      fully_detected_only: train on fully detected pedestrians only (the paper's "F").
+      seed: seeds parameters, data order, rotations, Gumbel noise and dropout.
+      checkpoint_every: epochs between checkpoints (the last epoch is always saved).
+      eval_every: epochs between validation AOE/FOE (0 = never; needs a validation split).
+      max_train_windows: use only the first k training windows (smoke tests; 0 = all).
+    """
+
+    epochs: int = 200
+    batch_size: int = 16
+    learning_rate: float = 1e-3
+    lr_decay: float = 0.3
+    lr_decay_every: int = 50
+    tau_start: float = 0.5
+    tau_end: float = 0.03
+    rotate: bool = True
+    fully_detected_only: bool = False
+    seed: int = 1000
+    checkpoint_every: int = 5
+    eval_every: int = 10
+    max_train_windows: int = 0
