@@ -1,0 +1,39 @@
+"""`python -m gst_jax.data stats`: window and pedestrian counts of the bundled datasets."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from gst_jax.config import ETH_UCY_SCENES, PROTOCOLS, SCENES, DataConfig
+from gst_jax.data.readers import DataError
+from gst_jax.data.stats import format_stats, split_stats
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m gst_jax.data", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    stats = commands.add_parser("stats", help="windows, pedestrians and fully detected counts")
+    stats.add_argument("--scene", action="append", choices=SCENES,
+                       help="scene to count (repeatable; default: the five ETH/UCY scenes)")
+    stats.add_argument("--protocol", default="paper", choices=PROTOCOLS,
+                       help="split protocol (default: paper)")
+    stats.add_argument("--obs-len", type=int, default=8, help="observed steps (default: 8)")
+    stats.add_argument("--pred-len", type=int, default=12, help="predicted steps (default: 12)")
+    stats.add_argument("--data-dir", default=None,
+                       help="folder holding eth_ucy/ and trajnetpp/ (default: bundled data/)")
+    stats.add_argument("--json", action="store_true",
+                       help="print JSON in the schema of reference_windows.json")
+    args = parser.parse_args(argv)
+    config = DataConfig(protocol=args.protocol, obs_len=args.obs_len, pred_len=args.pred_len,
+                        data_dir=args.data_dir)
+    try:
+        result = split_stats(config, args.scene or list(ETH_UCY_SCENES))
+    except DataError as error:
+        sys.exit(f"error: {error}")
+    print(json.dumps(result, indent=1) if args.json else format_stats(result))
+
+
+if __name__ == "__main__":
+    main()

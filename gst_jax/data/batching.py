@@ -1,0 +1,113 @@
+"""Padding windows into `SceneBatch`es: N rounded up to a few bucket sizes (numpy only).
+
+Each bucket size is one compiled program, so the sizes are few; B per bucket is fixed too.
+"""
+
+from __future__ import annotations
+
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from gst_jax.data.batch import SceneBatch, node_mask_from_positions
+from gst_jax.data.readers import DataError
+from gst_jax.data.windows import Window, WindowSet
+
+# Pedestrian-slot sizes; ETH/UCY windows hold 1-93 pedestrians.
+BUCKETS = (8, 16, 24, 32, 48, 64, 96, 128)
+
+
+def bucket_size(num_pedestrians: int, buckets: Sequence[int] = BUCKETS) -> int:
+    """The smallest bucket holding `num_pedestrians`."""
+    for size in buckets:
+        if num_pedestrians <= size:
+            return size
+    raise DataError(f"a window with {num_pedestrians} pedestrians exceeds the largest bucket "
+                    f"({buckets[-1]}); pass larger buckets")
+
+
+def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int | None = None,
+                window_index: Sequence[int] | None = None) -> SceneBatch:
+    """Stack windows into a SceneBatch of N = num_pedestrians slots and B = batch_size scenes.
+
+    Missing scenes (when batch_size > len(windows)) are all-zero with scene_mask 0.
+    """
+    batch_size = batch_size or len(windows)
+    seq_len = windows[0].position_mask.shape[0] if windows else 1
+    positions = np.zeros((batch_size, seq_len, num_pedestrians, 2), np.float32)
+    position_mask = np.zeros((batch_size, seq_len, num_pedestrians), np.float32)
+    for b, window in enumerate(windows):
+        n = window.num_pedestrians
+        positions[b, :, :n] = window.positions
+        position_mask[b, :, :n] = window.position_mask
+    scene_mask = (np.arange(batch_size) < len(windows)).astype(np.float32)
+    index = np.full(batch_size, -1, np.int32)
+    index[:len(windows)] = window_index if window_index is not None else np.arange(len(windows))
+    return SceneBatch(positions=positions, position_mask=position_mask,
+                      node_mask=node_mask_from_positions(position_mask), scene_mask=scene_mask,
+                      window_index=index)
+
+
+def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int = 0,
+                     epoch: int = 0, buckets: Sequence[int] = BUCKETS) -> Iterator[SceneBatch]:
+    """One batch per optimiser step: shuffled windows taken `batch_size` at a time.
+
+    As in the release, a step averages `batch_size` randomly drawn scenes; the step is padded
+    to the bucket of its largest scene, the last partial step with empty scenes. The order is
+    a function of (seed, epoch) only, so a resumed run sees the same batches.
+    """
+    order = np.random.default_rng([seed, epoch]).permutation(len(window_set))
+    for start in range(0, len(order), batch_size):
+        chosen = order[start:start + batch_size]
+        windows = [window_set[i] for i in chosen]
+        size = bucket_size(max(w.num_pedestrians for w in windows), buckets)
+        yield pad_windows(windows, size, batch_size, chosen)
+
+
+def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
+                       buckets: Sequence[int] = BUCKETS) -> Iterator[SceneBatch]:
+    """Every window once, grouped by bucket, B = max(1, edge_budget // N^2) scenes per batch.
+
+    A 90-pedestrian window never shares a padded size with an 8-pedestrian one, and B N^2
+    stays within the budget; `window_index` maps each scene back to `window_set`.
+    """
+    by_bucket: dict[int, list[int]] = {}
+    for index, window in enumerate(window_set.windows):
+        by_bucket.setdefault(bucket_size(window.num_pedestrians, buckets), []).append(index)
+    for size in sorted(by_bucket):
+        indices = by_bucket[size]
+        batch_size = max(1, edge_budget // size ** 2)
+        for start in range(0, len(indices), batch_size):
+            chosen = indices[start:start + batch_size]
+            yield pad_windows([window_set[i] for i in chosen], size, batch_size, chosen)
+
+
+def make_batch(observed_xy: np.ndarray) -> SceneBatch:
+    """A prediction batch from observations (B, T_obs, N, 2), NaN where nobody was detected.
+
+    This is the robot's use: feed the last T_obs tracked positions of everyone in view.
+    """
+    xy = np.asarray(observed_xy, dtype=np.float64)
+    if xy.ndim != 4 or xy.shape[-1] != 2:
+        raise ValueError(f"observed_xy must have shape (B, T_obs, N, 2), got {xy.shape}")
+    if 0 in xy.shape:
+        raise ValueError(f"observed_xy has an empty axis: shape {xy.shape}")
+    missing = np.isnan(xy)
+    half = missing[..., 0] != missing[..., 1]
+    if half.any():
+        b, t, n = np.argwhere(half)[0]
+        raise ValueError(f"observed_xy[{b}, {t}, {n}] has one NaN coordinate; mark a missing "
+                         "detection with NaN in both x and y")
+    if np.isinf(xy).any():
+        b, t, n = np.argwhere(np.isinf(xy).any(-1))[0]
+        raise ValueError(f"observed_xy[{b}, {t}, {n}] is infinite")
+    position_mask = (~missing[..., 0]).astype(np.float32)
+    empty = np.flatnonzero(position_mask.sum(axis=(1, 2)) == 0)
+    if len(empty):
+        raise ValueError(f"scene(s) {empty.tolist()} have no detected pedestrian (all NaN)")
+    batch_size = xy.shape[0]
+    return SceneBatch(positions=np.where(missing, 0.0, xy).astype(np.float32),
+                      position_mask=position_mask,
+                      node_mask=node_mask_from_positions(position_mask),
+                      scene_mask=np.ones(batch_size, np.float32),
+                      window_index=np.arange(batch_size, dtype=np.int32))

@@ -1,0 +1,115 @@
+"""Which windows are train, validation and test under each protocol (numpy only).
+
+- `paper`: the GST release's per-file temporal split: window starts
+  i < int((num_windows + 1) * 0.8) train, the rest test. Reproduces the release's counts.
+- `paper-val`: the same test split; the last `val_fraction` of each file's train windows
+  become validation, and train windows that share any frame with them are dropped.
+- `loo`: leave-one-scene-out (Social-GAN split, `data/eth_ucy/loo/splits.json`).
+TrajNet++ crowds (`lcas`, `wildtrack`) follow `paper` / `paper-val` on their own file.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+from gst_jax.config import DataConfig, ETH_UCY_SCENES, PROTOCOLS, SCENES
+from gst_jax.data.readers import DataError, read_tracks
+from gst_jax.data.windows import Window, WindowSet, cut_windows, kept
+
+SPLITS = ("train", "val", "test")
+TRAJNET_FILES = {"lcas": "lcas.ndjson", "wildtrack": "wildtrack.ndjson"}
+
+
+def default_data_dir() -> Path:
+    """The bundled `data/` folder of the repository this package was installed from."""
+    return Path(__file__).resolve().parents[2] / "data"
+
+
+def scene_files(data_dir: Path, scene: str) -> list[Path]:
+    """The raw files of a scene for the paper protocol (univ has two)."""
+    if scene in TRAJNET_FILES:
+        return [data_dir / "trajnetpp" / TRAJNET_FILES[scene]]
+    files = sorted((data_dir / "eth_ucy" / "raw" / scene).glob("*.txt"))
+    if not files:
+        raise DataError(f"no raw files for scene {scene!r} under {data_dir / 'eth_ucy' / 'raw'}")
+    return files
+
+
+def has_validation(config: DataConfig) -> bool:
+    return config.protocol in ("paper-val", "loo")
+
+
+def load_split(config: DataConfig, split: str) -> WindowSet:
+    """The windows of one split ('train', 'val' or 'test') of `config.scene`."""
+    _check(config, split)
+    data_dir = Path(config.data_dir) if config.data_dir else default_data_dir()
+    name = f"{config.scene}/{config.protocol}/{split}"
+    if config.protocol == "loo":
+        files = _loo_files(data_dir, config.scene, split)
+        return WindowSet(tuple(w for f in files for w in _all_windows(f, config.seq_len)), name)
+    windows: list[Window] = []
+    for path in scene_files(data_dir, config.scene):
+        windows += _temporal_split(_cut(path, config.seq_len), config, split)
+    return WindowSet(tuple(windows), name)
+
+
+def _check(config: DataConfig, split: str) -> None:
+    if config.scene not in SCENES:
+        raise DataError(f"unknown scene {config.scene!r}; choose one of {', '.join(SCENES)}")
+    if config.protocol not in PROTOCOLS:
+        raise DataError(f"unknown protocol {config.protocol!r}; choose one of "
+                        f"{', '.join(PROTOCOLS)}")
+    if split not in SPLITS:
+        raise DataError(f"unknown split {split!r}; choose one of {', '.join(SPLITS)}")
+    if config.protocol == "loo" and config.scene not in ETH_UCY_SCENES:
+        raise DataError(f"protocol 'loo' is defined for the ETH/UCY scenes "
+                        f"({', '.join(ETH_UCY_SCENES)}), not {config.scene!r}")
+    if split == "val" and not has_validation(config):
+        raise DataError(f"protocol {config.protocol!r} has no validation split (the release "
+                        "validates on its test windows); use protocol 'paper-val' or 'loo'")
+
+
+@functools.lru_cache(maxsize=64)
+def _cut(path: Path, seq_len: int) -> tuple[Window | None, ...]:
+    return tuple(cut_windows(read_tracks(path), seq_len))
+
+
+def _all_windows(path: Path, seq_len: int) -> list[Window]:
+    return kept(_cut(path, seq_len))
+
+
+def _temporal_split(windows: tuple[Window | None, ...], config: DataConfig,
+                    split: str) -> list[Window]:
+    """Split one file's window starts in time (windows has num_windows + 1 entries)."""
+    num_train = int(len(windows) * config.train_fraction)  # = int((num_windows + 1) * 0.8)
+    if split == "test":
+        return kept(windows[num_train:])
+    if config.protocol == "paper":
+        return kept(windows[:num_train])
+    # paper-val: carve validation from the end of the train starts, then drop the train
+    # windows whose time grid reaches the first validation frame.
+    train_candidates = kept(windows[:num_train])
+    num_val = max(1, round(len(train_candidates) * config.val_fraction))
+    val = train_candidates[len(train_candidates) - num_val:]
+    if split == "val":
+        return val
+    first_val_frame = min(w.frame_range[0] for w in val)
+    return [w for w in train_candidates[:len(train_candidates) - num_val]
+            if w.frame_range[1] < first_val_frame]
+
+
+def _loo_files(data_dir: Path, scene: str, split: str) -> list[Path]:
+    splits_path = data_dir / "eth_ucy" / "loo" / "splits.json"
+    try:
+        splits = json.loads(splits_path.read_text())
+    except FileNotFoundError:
+        raise DataError(f"{splits_path}: no such file") from None
+    except json.JSONDecodeError as error:
+        raise DataError(f"{splits_path}:{error.lineno}: not valid JSON ({error.msg})") from None
+    try:
+        names = splits[scene][split]
+    except KeyError:
+        raise DataError(f"{splits_path}: no {split!r} file list for scene {scene!r}") from None
+    return [data_dir / "eth_ucy" / "loo" / "files" / name for name in names]

@@ -1,0 +1,39 @@
+"""Window and pedestrian counts per scene and split (the schema of reference_windows.json)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from gst_jax.config import DataConfig
+from gst_jax.data.protocols import has_validation, load_split
+
+
+def split_stats(config: DataConfig, scenes: list[str]) -> dict:
+    """`{"protocol": ..., "scenes": {scene: {split: {windows, pedestrian_slots,
+    max_pedestrians, fully_detected}}}}` for the given scenes."""
+    splits = ("train", "val", "test") if has_validation(config) else ("train", "test")
+    result = {"protocol": f"{config.protocol}, obs {config.obs_len}, pred {config.pred_len}",
+              "scenes": {}}
+    for scene in scenes:
+        scene_config = dataclasses.replace(config, scene=scene)
+        result["scenes"][scene] = {split: load_split(scene_config, split).stats()
+                                   for split in splits}
+    return result
+
+
+def format_stats(stats: dict) -> str:
+    """An aligned table, with the share of partially detected pedestrians."""
+    header = ("scene", "split", "windows", "pedestrians", "max", "fully detected", "partial")
+    rows = []
+    for scene, splits in stats["scenes"].items():
+        for split, s in splits.items():
+            slots = s["pedestrian_slots"]
+            partial = 1 - s["fully_detected"] / slots if slots else 0.0
+            rows.append((scene, split, s["windows"], slots, s["max_pedestrians"],
+                         s["fully_detected"], f"{100 * partial:.1f}%"))
+    widths = [max(len(str(r[i])) for r in (header, *rows)) for i in range(len(header))]
+    lines = [f"protocol: {stats['protocol']}"]
+    for row in (header, *rows):
+        lines.append("  ".join(str(c).rjust(w) if i >= 2 else str(c).ljust(w)
+                               for i, (c, w) in enumerate(zip(row, widths))))
+    return "\n".join(lines)

@@ -1,0 +1,108 @@
+"""Scene windows of partially detected pedestrians (MODEL.md section 1), numpy only."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from gst_jax.data.readers import Tracks
+
+
+@dataclasses.dataclass(frozen=True)
+class Window:
+    """One scene window: T steps of the N_w pedestrians seen in it.
+
+    Attributes:
+      positions: (T, N_w, 2) float32 metres, zero where the pedestrian was not detected.
+      position_mask: (T, N_w) float32, 1 where the position exists.
+      pedestrian_ids: (N_w,) int64, sorted.
+      source: the file the window was cut from.
+      start_frame: frame id of step 0; step t is frame start_frame + t * frame_step.
+      frame_step: frame-id difference of one step.
+    """
+
+    positions: np.ndarray
+    position_mask: np.ndarray
+    pedestrian_ids: np.ndarray
+    source: str
+    start_frame: int
+    frame_step: int
+
+    @property
+    def num_pedestrians(self) -> int:
+        return self.position_mask.shape[1]
+
+    @property
+    def frame_range(self) -> tuple[int, int]:
+        """(first, last) frame id covered by the window's time grid."""
+        return self.start_frame, self.start_frame + (self.position_mask.shape[0] - 1) * self.frame_step
+
+    def fully_detected(self) -> np.ndarray:
+        """(N_w,) bool: detected at every step (MODEL.md 1.8)."""
+        return self.position_mask.min(axis=0) > 0
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowSet:
+    """The windows of one split of one dataset, in a fixed order."""
+
+    windows: tuple[Window, ...]
+    name: str = ""
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, index: int) -> Window:
+        return self.windows[index]
+
+    def subset(self, indices: Iterable[int]) -> "WindowSet":
+        return WindowSet(tuple(self.windows[i] for i in indices), self.name)
+
+    def stats(self) -> dict[str, int]:
+        """Counts in the schema of tests/fixtures/reference_windows.json."""
+        sizes = [w.num_pedestrians for w in self.windows]
+        return {"windows": len(self.windows), "pedestrian_slots": int(sum(sizes)),
+                "max_pedestrians": int(max(sizes, default=0)),
+                "fully_detected": int(sum(w.fully_detected().sum() for w in self.windows))}
+
+
+def cut_windows(tracks: Tracks, seq_len: int) -> list[Window | None]:
+    """Every window start of a file, as the release enumerates them.
+
+    Start index i runs over range(num_windows + 1) with num_windows = len(frames) - seq_len + 1
+    (the release's off-by-one; the last start has too few frames and is never kept). Entry i
+    is None when no pedestrian of window i is fully detected (such windows are dropped).
+    """
+    frames = np.unique(tracks.frames)
+    num_windows = len(frames) - seq_len + 1
+    frame_index = np.searchsorted(frames, tracks.frames)
+    windows: list[Window | None] = []
+    for start in range(max(num_windows + 1, 0)):
+        rows = (frame_index >= start) & (frame_index < start + seq_len)
+        windows.append(_window_from_rows(tracks, rows, int(frames[start]) if start < len(frames)
+                                         else 0, seq_len))
+    return windows
+
+
+def _window_from_rows(tracks: Tracks, rows: np.ndarray, start_frame: int,
+                      seq_len: int) -> Window | None:
+    if not rows.any():
+        return None
+    pedestrian_ids, slot = np.unique(tracks.pedestrians[rows], return_inverse=True)
+    offset = tracks.frames[rows] - start_frame
+    step = offset // tracks.frame_step
+    on_grid = (offset % tracks.frame_step == 0) & (step < seq_len)
+    positions = np.zeros((seq_len, len(pedestrian_ids), 2), np.float32)
+    position_mask = np.zeros((seq_len, len(pedestrian_ids)), np.float32)
+    positions[step[on_grid], slot[on_grid]] = tracks.xy[rows][on_grid]
+    position_mask[step[on_grid], slot[on_grid]] = 1.0
+    if not (position_mask.min(axis=0) > 0).any():
+        return None
+    return Window(positions, position_mask, pedestrian_ids, tracks.path, start_frame,
+                  tracks.frame_step)
+
+
+def kept(windows: Sequence[Window | None]) -> list[Window]:
+    return [w for w in windows if w is not None]

@@ -1,0 +1,268 @@
+"""The numpy data layer: readers, windowing, protocols, batching, make_batch, stats."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gst_jax import data
+from gst_jax.config import DataConfig, ETH_UCY_SCENES
+from gst_jax.data.stats import split_stats
+from gst_jax.data.windows import cut_windows
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+def _write(tmp_path: Path, text: str, name: str = "tracks.txt") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+# --- readers -------------------------------------------------------------------------------
+
+def test_text_reader_accepts_tabs_and_spaces(tmp_path):
+    path = _write(tmp_path, "10\t1.0\t0.5\t1.5\n0 2 3.0 4.0\n\n0.0\t1\t0.0 1.0\n")
+    tracks = data.read_tracks(path)
+    np.testing.assert_array_equal(tracks.frames, [0, 0, 10])
+    np.testing.assert_array_equal(tracks.pedestrians, [1, 2, 1])
+    np.testing.assert_allclose(tracks.xy, [[0, 1], [3, 4], [0.5, 1.5]])
+    assert tracks.frame_step == 10
+
+
+@pytest.mark.parametrize("text, problem, line", [
+    ("0 1 0.0 1.0\n10 1 abc 1.0\n", "x is not a number: 'abc'", 2),
+    ("0 1 0.0 1.0\n10 1 1.0\n", "expected 4 columns", 2),
+    ("0 1 0.0 1.0\n10 1 nan 1.0\n", "x is not finite", 2),
+    ("0 1 0.0 1.0\n10 1 inf 1.0\n", "x is not finite", 2),
+    ("0 1 0.0 1.0\n10 2 0.0 1.0\n0 1 5.0 5.0\n", "duplicate row for frame 0, pedestrian 1 (first at line 1)", 3),
+    ("0 1.5 0.0 1.0\n", "pedestrian id is not an integer", 1),
+])
+def test_text_reader_rejects_bad_rows_naming_file_and_line(tmp_path, text, problem, line):
+    path = _write(tmp_path, text)
+    with pytest.raises(data.DataError) as error:
+        data.read_tracks(path)
+    assert f"{path}:{line}:" in str(error.value)
+    assert problem in str(error.value)
+
+
+def test_empty_file_is_an_error(tmp_path):
+    path = _write(tmp_path, "\n  \n")
+    with pytest.raises(data.DataError, match="empty file"):
+        data.read_tracks(path)
+
+
+def test_ndjson_reader_reads_frame_step_from_data(tmp_path):
+    lines = ['{"scene": {"id": 0, "p": 1, "s": 0, "e": 10, "fps": 2, "tag": [1, []]}}']
+    lines += [json.dumps({"track": {"f": f, "p": 1, "x": f / 10, "y": 0.0}}) for f in (0, 5, 10)]
+    tracks = data.read_tracks(_write(tmp_path, "\n".join(lines), "crowd.ndjson"))
+    assert tracks.frame_step == 5 and len(tracks.frames) == 3
+
+
+@pytest.mark.parametrize("line, problem", [
+    ('{"track": {"f": 0, "p": 1, "x": 0.0}}', "track record lacks y"),
+    ('{"track": {"f": 0, "p": 1, "x": "a", "y": 0.0}}', "x is not a number"),
+    ('{"track": {"f": 0, "p": 1, "x": NaN, "y": 0.0}}', "x is not finite"),
+    ('{"track": ', "not valid JSON"),
+    ('{"other": 1}', "expected a 'scene' or 'track' record"),
+])
+def test_ndjson_reader_rejects_bad_records(tmp_path, line, problem):
+    good = '{"track": {"f": 0, "p": 2, "x": 0.0, "y": 0.0}}'
+    path = _write(tmp_path, good + "\n" + line + "\n", "crowd.ndjson")
+    with pytest.raises(data.DataError) as error:
+        data.read_tracks(path)
+    assert f"{path}:2:" in str(error.value) and problem in str(error.value)
+
+
+def test_bundled_files_frame_steps():
+    root = data.default_data_dir()
+    assert data.read_tracks(root / "eth_ucy/raw/eth/biwi_eth.txt").frame_step == 10
+    assert data.read_tracks(root / "trajnetpp/lcas.ndjson").frame_step == 1
+    assert data.read_tracks(root / "trajnetpp/wildtrack.ndjson").frame_step == 5
+
+
+# --- windowing -------------------------------------------------------------------------------
+
+def test_hand_built_windows(tmp_path):
+    # Pedestrian 1 walks through frames 0..40; pedestrian 2 leaves after frame 10 and is
+    # back at 30 (a gap); pedestrian 3 appears at frame 20.
+    rows = [(f, 1, f / 10, 0.0) for f in range(0, 50, 10)]
+    rows += [(0, 2, 0.0, 1.0), (10, 2, 0.0, 2.0), (30, 2, 0.0, 4.0)]
+    rows += [(20, 3, 5.0, 5.0), (30, 3, 5.0, 6.0)]
+    path = _write(tmp_path, "".join(f"{f} {p} {x} {y}\n" for f, p, x, y in rows))
+    windows = cut_windows(data.read_tracks(path), seq_len=3)
+    # 5 frames -> num_windows = 3, the release enumerates starts 0..3; start 3 is too short.
+    assert len(windows) == 4 and windows[3] is None
+    first = windows[0]
+    np.testing.assert_array_equal(first.pedestrian_ids, [1, 2, 3])
+    np.testing.assert_array_equal(first.position_mask, [[1, 1, 0], [1, 1, 0], [1, 0, 1]])
+    np.testing.assert_allclose(first.positions[:, 1], [[0, 1], [0, 2], [0, 0]])
+    np.testing.assert_array_equal(first.fully_detected(), [True, False, False])
+    node_mask = data.node_mask_from_positions(first.position_mask)
+    np.testing.assert_array_equal(node_mask[:, 1], [1, 1, 0])
+    np.testing.assert_array_equal(node_mask[:, 2], [0, 0, 0])  # no displacement yet
+    second = windows[1]  # frames 10, 20, 30
+    np.testing.assert_array_equal(second.position_mask[:, 1], [1, 0, 1])
+    np.testing.assert_array_equal(data.node_mask_from_positions(second.position_mask)[:, 1], [1, 0, 0])
+
+
+def test_window_without_fully_detected_pedestrian_is_dropped(tmp_path):
+    rows = [(0, 1, 0, 0), (10, 1, 1, 0), (10, 2, 0, 1), (20, 2, 1, 1)]
+    path = _write(tmp_path, "".join(f"{f} {p} {x} {y}\n" for f, p, x, y in rows))
+    assert cut_windows(data.read_tracks(path), seq_len=3) == [None, None]
+
+
+# --- protocols -------------------------------------------------------------------------------
+
+def test_paper_protocol_reproduces_reference_counts():
+    reference = json.loads((FIXTURES / "reference_windows.json").read_text())
+    ours = split_stats(DataConfig(protocol="paper"), list(ETH_UCY_SCENES))
+    assert ours["scenes"] == reference["scenes"]
+
+
+def test_stats_command_json_matches_reference():
+    reference = json.loads((FIXTURES / "reference_windows.json").read_text())
+    result = subprocess.run([sys.executable, "-m", "gst_jax.data", "stats", "--protocol",
+                             "paper", "--json"], capture_output=True, text=True, check=True)
+    assert json.loads(result.stdout)["scenes"] == reference["scenes"]
+
+
+def test_stats_command_table_shows_partial_share():
+    result = subprocess.run([sys.executable, "-m", "gst_jax.data", "stats", "--scene", "zara1"],
+                            capture_output=True, text=True, check=True)
+    # zara1 train: 581 windows, 5627 slots, 1979 fully detected -> 64.8% partial.
+    assert "581" in result.stdout and "64.8%" in result.stdout
+
+
+def _frames(window):
+    first, last = window.frame_range
+    return set(range(first, last + 1, window.frame_step))
+
+
+@pytest.mark.parametrize("scene", ["eth", "univ", "lcas"])
+def test_validation_carve_out_has_no_temporal_overlap(scene):
+    config = DataConfig(scene=scene, protocol="paper-val")
+    train, val = data.load_split(config, "train"), data.load_split(config, "val")
+    assert len(train) > 0 and len(val) > 0
+    for source in {w.source for w in val.windows}:
+        val_frames = set().union(*(_frames(w) for w in val.windows if w.source == source))
+        for window in train.windows:
+            if window.source == source:
+                assert not (_frames(window) & val_frames)
+    paper_test = data.load_split(DataConfig(scene=scene), "test")
+    assert data.load_split(config, "test").stats() == paper_test.stats()
+    assert len(train) + len(val) < len(data.load_split(DataConfig(scene=scene), "train"))
+
+
+def test_loo_split_files():
+    config = DataConfig(scene="eth", protocol="loo")
+    test_sources = {Path(w.source).name for w in data.load_split(config, "test").windows}
+    assert test_sources == {"biwi_eth.txt"}
+    train_sources = {Path(w.source).name for w in data.load_split(config, "train").windows}
+    assert "biwi_hotel_train.txt" in train_sources
+    assert not any(name.startswith("biwi_eth") for name in train_sources)
+    val_sources = {Path(w.source).name for w in data.load_split(config, "val").windows}
+    assert val_sources and all(name.endswith("_val.txt") for name in val_sources)
+
+
+@pytest.mark.parametrize("scene, step", [("lcas", 1), ("wildtrack", 5)])
+def test_trajnet_scenes_window_on_their_own_frame_step(scene, step):
+    train = data.load_split(DataConfig(scene=scene), "train")
+    test = data.load_split(DataConfig(scene=scene), "test")
+    assert len(train) > len(test) > 0
+    assert {w.frame_step for w in train.windows} == {step}
+
+
+@pytest.mark.parametrize("config, split, problem", [
+    (DataConfig(scene="atlantis"), "train", "unknown scene 'atlantis'"),
+    (DataConfig(protocol="random"), "train", "unknown protocol 'random'"),
+    (DataConfig(scene="lcas", protocol="loo"), "train", "protocol 'loo' is defined for"),
+    (DataConfig(), "val", "has no validation split"),
+    (DataConfig(), "dev", "unknown split 'dev'"),
+])
+def test_bad_requests_are_explained(config, split, problem):
+    with pytest.raises(data.DataError, match=problem):
+        data.load_split(config, split)
+
+
+# --- batching --------------------------------------------------------------------------------
+
+def test_padding_keeps_real_entries():
+    windows = data.load_split(DataConfig(scene="zara1"), "test")
+    small = data.pad_windows(windows.windows[:3], 16)
+    large = data.pad_windows(windows.windows[:3], 40, batch_size=5)
+    for name in ("positions", "position_mask", "node_mask"):
+        np.testing.assert_array_equal(getattr(large, name)[:3, :, :16], getattr(small, name))
+        assert not getattr(large, name)[:, :, 16:].any()
+    np.testing.assert_array_equal(large.scene_mask, [1, 1, 1, 0, 0])
+    np.testing.assert_array_equal(large.window_index, [0, 1, 2, -1, -1])
+
+
+def test_training_batches_are_seeded_and_cover_every_window():
+    windows = data.load_split(DataConfig(scene="univ"), "test")
+    batches = list(data.training_batches(windows, batch_size=16, seed=3, epoch=1))
+    seen = np.concatenate([b.window_index[b.scene_mask > 0] for b in batches])
+    assert sorted(seen.tolist()) == list(range(len(windows)))
+    for batch in batches:
+        b, _, n = batch.shape
+        assert b == 16 and n in data.BUCKETS
+        sizes = [windows[i].num_pedestrians for i in batch.window_index if i >= 0]
+        assert n == data.bucket_size(max(sizes))
+    again = list(data.training_batches(windows, batch_size=16, seed=3, epoch=1))
+    other = list(data.training_batches(windows, batch_size=16, seed=3, epoch=2))
+    assert all(np.array_equal(a.window_index, b.window_index) for a, b in zip(batches, again))
+    assert not np.array_equal(batches[0].window_index, other[0].window_index)
+
+
+def test_evaluation_batches_respect_the_edge_budget():
+    windows = data.load_split(DataConfig(scene="univ"), "test")
+    budget = 8192
+    batches = list(data.evaluation_batches(windows, edge_budget=budget))
+    seen = np.concatenate([b.window_index[b.scene_mask > 0] for b in batches])
+    assert sorted(seen.tolist()) == list(range(len(windows)))
+    for batch in batches:
+        b, _, n = batch.shape
+        assert n in data.BUCKETS and (b * n * n <= budget or b == 1)
+        for i in batch.window_index[batch.window_index >= 0]:
+            assert data.bucket_size(windows[i].num_pedestrians) == n
+    assert len({b.shape[2] for b in batches}) > 1
+
+
+# --- make_batch ------------------------------------------------------------------------------
+
+def test_make_batch_from_nan_marked_observations():
+    xy = np.zeros((2, 8, 3, 2))
+    xy[..., 0] = np.arange(8)[None, :, None]
+    xy[0, :5, 2] = np.nan          # pedestrian 2 appears at step 5
+    xy[1, 7, 1] = np.nan           # pedestrian 1 lost at the last step
+    batch = data.make_batch(xy)
+    assert batch.shape == (2, 8, 3)
+    np.testing.assert_array_equal(batch.position_mask[0, :, 2], [0] * 5 + [1] * 3)
+    np.testing.assert_array_equal(batch.node_mask[0, :, 2], [0] * 6 + [1] * 2)
+    assert batch.positions[0, 0, 2].tolist() == [0, 0]
+    assert batch.node_mask[1, 7, 1] == 0 and batch.node_mask[1, 6, 1] == 1
+    np.testing.assert_array_equal(batch.scene_mask, [1, 1])
+
+
+@pytest.mark.parametrize("xy, problem", [
+    (np.zeros((8, 3, 2)), r"shape \(B, T_obs, N, 2\)"),
+    (np.zeros((1, 8, 3, 3)), r"shape \(B, T_obs, N, 2\)"),
+    (np.full((2, 8, 3, 2), np.nan), r"scene\(s\) \[0, 1\] have no detected pedestrian"),
+    (np.array([[[[np.nan, 1.0]]]]), "one NaN coordinate"),
+    (np.zeros((1, 0, 3, 2)), "empty axis"),
+])
+def test_make_batch_errors(xy, problem):
+    with pytest.raises(ValueError, match=problem):
+        data.make_batch(xy)
+
+
+def test_data_layer_never_imports_jax():
+    package = Path(data.__file__).parent
+    for path in package.glob("*.py"):
+        text = path.read_text()
+        assert "import jax" not in text and "from jax" not in text, path
