@@ -1,0 +1,27 @@
+"""Traced switches of one forward pass: temperature, number of edge heads, ghost agent."""
+
+from __future__ import annotations
+
+import flax
+import jax
+import jax.numpy as jnp
+
+
+@flax.struct.dataclass
+class Controls:
+    """Values that vary inside one compiled program (so changing them never recompiles).
+
+    Attributes:
+      tau: () float32 Gumbel-softmax temperature.
+      num_edge_heads: () int32 n; 0 = full connection (no selector, no ghost).
+      ghost: () bool, whether the ghost neighbour may be selected.
+    """
+
+    tau: jax.Array
+    num_edge_heads: jax.Array
+    ghost: jax.Array
+
+    @classmethod
+    def make(cls, tau: float, num_edge_heads: int, ghost: bool) -> "Controls":
+        return cls(tau=jnp.float32(tau), num_edge_heads=jnp.int32(num_edge_heads),
+                   ghost=jnp.bool_(ghost))

@@ -1,0 +1,51 @@
+"""Node Transformer Encoder layer (MODEL.md 2.2): attention over the sampled neighbours."""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from gst_jax.config import ModelConfig
+from gst_jax.graph import float_mask_attention_weights
+from gst_jax.model.layers import layer_norm, torch_dense
+
+
+class NodeEncoderLayer(nn.Module):
+    """Pre-norm transformer layer whose attention weights are masked by the sampled graph."""
+
+    config: ModelConfig
+
+    def setup(self):
+        d = self.config.node_dim
+        self.norm_node = layer_norm()
+        self.norm1_node = layer_norm()
+        # torch.nn.MultiheadAttention: xavier in_proj with zero bias, out_proj bias zero.
+        self.in_proj = nn.Dense(3 * d, kernel_init=nn.initializers.xavier_uniform())
+        self.out_proj = nn.Dense(d, kernel_init=nn.initializers.xavier_uniform())
+        self.linear1 = torch_dense(self.config.encoder_ff_dim, d)
+        self.linear2 = torch_dense(d, self.config.encoder_ff_dim)
+        self.dropout = nn.Dropout(self.config.dropout)
+
+    def __call__(self, x: jax.Array, node_valid: jax.Array, sampled_adjacency: jax.Array, *,
+                 deterministic: bool) -> tuple[jax.Array, jax.Array]:
+        """x: (..., N, d); node_valid: (..., N); sampled_adjacency: (..., N, N+1) (ghost last).
+
+        Returns the new x (..., N, d) and the attention weights (..., heads, N, N+1).
+        """
+        heads = self.config.encoder_heads
+        d = self.config.node_dim
+        x = self.norm_node(x) * node_valid[..., None]
+        # Keys and values include a zero ghost row; its column of the mask decides its use.
+        with_ghost = jnp.concatenate([x, jnp.zeros_like(x[..., :1, :])], axis=-2)
+        qkv = self.in_proj(with_ghost)
+        q, k, v = qkv[..., :-1, :d], qkv[..., d:2 * d], qkv[..., 2 * d:]
+        split = lambda t: t.reshape(t.shape[:-1] + (heads, d // heads))
+        scores = jnp.einsum("...lhc,...mhc->...hlm", split(q), split(k)) / jnp.sqrt(d // heads)
+        weights = float_mask_attention_weights(scores, sampled_adjacency[..., None, :, :])
+        attended = jnp.einsum("...hlm,...mhc->...lhc", weights, split(v)).reshape(x.shape)
+        # The residual adds to the normalised x, as the release does.
+        x = x + self.dropout(self.out_proj(attended), deterministic=deterministic)
+        feed_forward = self.linear2(self.dropout(nn.relu(self.linear1(self.norm1_node(x))),
+                                                 deterministic=deterministic))
+        return x + self.dropout(feed_forward, deterministic=deterministic), weights

@@ -1,0 +1,93 @@
+"""The Gumbel Social Transformer as a Flax module with one method per stage.
+
+`rollout.py` drives these methods over time; this module holds no loop over time.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from gst_jax.config import ModelConfig
+from gst_jax.graph import adjacency
+from gst_jax.model.controls import Controls
+from gst_jax.model.encoder import NodeEncoderLayer
+from gst_jax.model.layers import torch_dense
+from gst_jax.model.recurrent import MaskedLSTMCell
+from gst_jax.model.selector import EdgeSelector
+
+
+class GST(nn.Module):
+    """Embeddings, edge selector, node encoder, masked LSTM and output head."""
+
+    config: ModelConfig
+
+    def setup(self):
+        config = self.config
+        self.node_embedding = torch_dense(config.node_dim, 2)
+        self.edge_embedding = torch_dense(config.edge_dim, 2)
+        self.edge_selector = EdgeSelector(config)
+        self.node_encoder_layers = [NodeEncoderLayer(config) for _ in range(config.encoder_layers)]
+        self.lstm = MaskedLSTMCell(config.lstm_hidden)
+        self.hidden2pos = torch_dense(5, config.lstm_hidden)
+
+    def interact(self, node_features: jax.Array, edge_features: jax.Array, node_mask: jax.Array,
+                 noise: jax.Array, controls: Controls, *, hard: bool, deterministic: bool):
+        """Sample the graph and encode every pedestrian's neighbourhood.
+
+        node_features (..., N, 2), edge_features (..., N, N, 2) [j, i], node_mask (..., N),
+        noise (..., N, G, N+1). Returns encoded nodes (..., N, d), edge_probs and
+        sampled_edges (..., N, G, N+1), and attention weights (layers, ..., 8, N, N+1).
+        """
+        edges = adjacency(node_mask)
+        node_embedding = self.node_embedding(node_features)
+        edge_embedding = self.edge_embedding(edge_features)
+        edge_probs, sampled_edges, sampled_adjacency = self.edge_selector(
+            node_embedding, edge_embedding, edges, noise, controls, hard=hard,
+            deterministic=deterministic)
+        # Full connection (n = 0): the observed adjacency itself, no ghost.
+        full = jnp.concatenate([edges, jnp.zeros_like(edges[..., :1])], axis=-1)
+        full_connection = controls.num_edge_heads == 0
+        sampled_adjacency = jnp.where(full_connection, full, sampled_adjacency)
+        sampled_adjacency = sampled_adjacency.at[..., -1].multiply(controls.ghost.astype(full.dtype))
+        first_head = jnp.arange(edge_probs.shape[-2]) == 0
+        as_edges = jnp.where(first_head[:, None], full[..., None, :], 0.0)
+        edge_probs = jnp.where(full_connection, as_edges, edge_probs)
+        sampled_edges = jnp.where(full_connection, as_edges, sampled_edges)
+
+        x = node_embedding
+        attention = []
+        for layer in self.node_encoder_layers:
+            x, weights = layer(x, node_mask, sampled_adjacency, deterministic=deterministic)
+            attention.append(weights)
+        return x, edge_probs, sampled_edges, jnp.stack(attention)
+
+    def recur(self, inputs: jax.Array, state: tuple[jax.Array, jax.Array],
+              mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """One masked LSTM step: inputs (..., N, d), state (h, c) (..., N, H), mask (..., N)."""
+        return self.lstm(inputs * mask[..., None], state, mask)
+
+    def readout(self, hidden: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Gaussian parameters of the next displacement: mu (..., 2), sigma (..., 2), corr (...)."""
+        out = self.hidden2pos(hidden)
+        return out[..., :2], jnp.exp(out[..., 2:4]), jnp.tanh(out[..., 4])
+
+    def __call__(self, node_features, edge_features, node_mask, noise, controls):
+        """Touch every parameter once (used by `init`)."""
+        encoded, *_ = self.interact(node_features, edge_features, node_mask, noise, controls,
+                                    hard=False, deterministic=True)
+        zeros = jnp.zeros(encoded.shape[:-1] + (self.config.lstm_hidden,))
+        hidden, _ = self.recur(encoded, (zeros, zeros), node_mask)
+        return self.readout(hidden)
+
+
+def init_params(config: ModelConfig, key: jax.Array):
+    """Fresh parameters (PyTorch-style initialisation) for `config`."""
+    n, width = 4, config.max_edge_heads
+    node_mask = jnp.ones((1, n))
+    noise = jnp.zeros((1, n, width, n + 1))
+    controls = Controls.make(1.0, max(config.num_edge_heads, 1), True)
+    variables = GST(config).init(key, jnp.zeros((1, n, 2)), jnp.zeros((1, n, n, 2)), node_mask,
+                                 noise, controls)
+    return variables["params"]

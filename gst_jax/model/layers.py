@@ -1,0 +1,34 @@
+"""Initialisers and small layers shared by the GST modules.
+
+Parameters are initialised as PyTorch initialises the release's layers, so that training
+from scratch starts where the release starts.
+"""
+
+from __future__ import annotations
+
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+def torch_uniform(fan_in: int):
+    """U(-1/sqrt(fan_in), 1/sqrt(fan_in)): PyTorch's default for Linear and LSTM parameters."""
+    bound = 1.0 / math.sqrt(fan_in)
+
+    def init(key, shape, dtype=jnp.float32):
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+    return init
+
+
+def torch_dense(features: int, fan_in: int, name: str | None = None) -> nn.Dense:
+    """A Dense layer initialised like torch.nn.Linear(fan_in, features)."""
+    return nn.Dense(features, kernel_init=torch_uniform(fan_in), bias_init=torch_uniform(fan_in),
+                    name=name)
+
+
+def layer_norm(name: str | None = None) -> nn.LayerNorm:
+    """torch.nn.LayerNorm's epsilon (1e-5), not flax's default (1e-6)."""
+    return nn.LayerNorm(epsilon=1e-5, name=name)

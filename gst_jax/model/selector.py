@@ -1,0 +1,129 @@
+"""Edge Gumbel Selector (MODEL.md 2.1): each target samples at most n neighbours.
+
+The number of edge heads n is a traced value. The 128-wide q/k/v are split into G =
+max_edge_heads groups of width 128/G; head h of an n-head model owns the G/n consecutive
+groups starting at h G/n, so its dot products are sums over its groups and its slice of
+q/k/v is exactly the release's head h. The shared per-head MLP Linear(hd, hd) lives in the
+top-left hd x hd block of a 128 x 128 weight and is applied to all heads at once as a
+block-diagonal matrix. One parameter layout and one compiled program serve every n | G.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from gst_jax.config import ModelConfig
+from gst_jax.graph import float_mask_attention_weights, masked_categorical, EPS
+from gst_jax.gumbel import gumbel_softmax
+from gst_jax.model.controls import Controls
+from gst_jax.model.layers import layer_norm, torch_uniform
+
+
+def group_to_head(num_groups: int, num_edge_heads: jax.Array) -> jax.Array:
+    """(G, G) 0/1 matrix: entry [g, h] = 1 iff group g belongs to active head h < n."""
+    groups_per_head = num_groups // jnp.maximum(num_edge_heads, 1)
+    group = jnp.arange(num_groups)
+    head = jnp.arange(num_groups)
+    owner = group // groups_per_head
+    return ((owner[:, None] == head[None, :]) & (head[None, :] < num_edge_heads)).astype(jnp.float32)
+
+
+def block_diagonal(weight: jax.Array, head_dim: jax.Array) -> jax.Array:
+    """Repeat the top-left head_dim x head_dim block of a (W, W) weight along the diagonal."""
+    width = weight.shape[0]
+    within = jnp.arange(width) % head_dim
+    block = jnp.arange(width) // head_dim
+    same_block = block[:, None] == block[None, :]
+    return jnp.where(same_block, weight[within[:, None], within[None, :]], 0.0)
+
+
+class EdgeSelector(nn.Module):
+    """Scores every (target, neighbour) edge and samples n neighbours per target."""
+
+    config: ModelConfig
+
+    def setup(self):
+        config = self.config
+        width = config.selector_dim
+        if width % config.max_edge_heads:
+            raise ValueError(f"max_edge_heads {config.max_edge_heads} must divide {width}")
+        init_heads = max(config.num_edge_heads, 1)
+        head_dim = width // init_heads
+        self.norm_node = layer_norm()
+        self.norm_edge = layer_norm()
+        # torch.nn.MultiheadAttention's in_proj: xavier-uniform weight, zero bias.
+        self.in_proj_kernel = self.param("in_proj_kernel", nn.initializers.xavier_uniform(),
+                                         (width, 3 * width))
+        self.in_proj_bias = self.param("in_proj_bias", nn.initializers.zeros, (3 * width,))
+        # The per-head MLP, padded: only the top-left head_dim block is used.
+        self.mlp_hidden_kernel = self.param("mlp_hidden_kernel", torch_uniform(head_dim),
+                                            (width, width))
+        self.mlp_hidden_bias = self.param("mlp_hidden_bias", torch_uniform(head_dim), (width,))
+        self.mlp_out_kernel = self.param("mlp_out_kernel", torch_uniform(head_dim), (width,))
+        self.mlp_out_bias = self.param("mlp_out_bias", torch_uniform(head_dim), ())
+        self.dropout = nn.Dropout(config.dropout)
+
+    def __call__(self, node_embedding: jax.Array, edge_embedding: jax.Array,
+                 adjacency: jax.Array, noise: jax.Array, controls: Controls, *, hard: bool,
+                 deterministic: bool):
+        """Sample the interaction graph of one or more time steps.
+
+        node_embedding: (..., N, d) phi_v(v); edge_embedding: (..., N, N, d_e) phi_e(A),
+        indexed [j, i]; adjacency: (..., N, N) a_ij; noise: (..., N, G, N+1) Gumbel noise.
+        Returns edge_probs and sampled_edges, both (..., N, G, N+1) (target, head slot,
+        neighbour; ghost last; inactive head slots zero), and the sampled adjacency
+        (..., N, N+1) = sum over heads.
+        """
+        config = self.config
+        num_groups = config.max_edge_heads
+        width = config.selector_dim
+        d = config.node_dim
+        n = controls.num_edge_heads
+        head_dim = width // jnp.maximum(n, 1)
+
+        node_valid = jnp.diagonal(adjacency, axis1=-2, axis2=-1)                # (..., N)
+        x = self.norm_node(node_embedding) * node_valid[..., None]
+        e = self.norm_edge(edge_embedding) * adjacency[..., None]
+        # The ghost neighbour: zero node and edge features, valid for every target.
+        x_nb = jnp.concatenate([x, jnp.zeros_like(x[..., :1, :])], axis=-2)     # (..., L, d)
+        e_nb = jnp.concatenate([e, jnp.zeros_like(e[..., :1, :, :])], axis=-3)  # (..., L, N, de)
+        ghost_column = jnp.broadcast_to(controls.ghost.astype(x.dtype), node_valid.shape)
+        valid_edges = jnp.concatenate(                                          # a'_ij (..., N, L)
+            [jnp.swapaxes(adjacency, -1, -2), ghost_column[..., None]], axis=-1)
+
+        # [x_j | x_i | e_ji] W = x_j W_a + x_i W_b + e_ji W_c: per-node parts once per node.
+        kernel = self.in_proj_kernel
+        from_neighbour = x_nb @ kernel[:d]                                       # (..., L, 3W)
+        from_target = x @ kernel[d:2 * d]                                        # (..., N, 3W)
+        from_edge = jnp.swapaxes(e_nb @ kernel[2 * d:], -2, -3)                  # (..., N, L, 3W)
+        qkv = from_edge + from_neighbour[..., None, :, :] + from_target[..., :, None, :]
+        qkv = qkv + self.in_proj_bias
+        shape = qkv.shape[:-1] + (num_groups, width // num_groups)
+        q, k, v = (part.reshape(shape) for part in jnp.split(qkv, 3, axis=-1))  # (..., N, L, G, w)
+
+        heads = group_to_head(num_groups, n)                                     # (G, G)
+        group_scores = jnp.einsum("...lgc,...mgc->...glm", q, k)
+        scores = jnp.einsum("...glm,gh->...hlm", group_scores, heads) / jnp.sqrt(
+            head_dim.astype(q.dtype))
+        edge_pair_mask = valid_edges[..., None, :, None] * valid_edges[..., None, None, :]
+        weights = float_mask_attention_weights(scores, edge_pair_mask)           # (..., N, H, L, L)
+        group_weights = jnp.einsum("...hlm,gh->...glm", weights, heads)
+        head_outputs = jnp.einsum("...glm,...mgc->...lgc", group_weights, v)
+        head_outputs = head_outputs.reshape(head_outputs.shape[:-2] + (width,))  # (..., N, L, W)
+
+        within = jnp.arange(width) % head_dim
+        hidden = nn.relu(head_outputs @ block_diagonal(self.mlp_hidden_kernel, head_dim)
+                         + self.mlp_hidden_bias[within])
+        hidden = self.dropout(hidden, deterministic=deterministic)
+        contributions = (hidden * self.mlp_out_kernel[within]).reshape(
+            hidden.shape[:-1] + (num_groups, width // num_groups)).sum(-1)       # (..., N, L, G)
+        logits = jnp.einsum("...lg,gh->...hl", contributions, heads) + self.mlp_out_bias
+
+        active_heads = (jnp.arange(num_groups) < n).astype(x.dtype)              # (H,)
+        edge_probs = masked_categorical(logits, valid_edges[..., None, :]) * active_heads[:, None]
+        sampled = gumbel_softmax(jnp.log(edge_probs + EPS), noise, controls.tau, hard)
+        sampled = sampled * active_heads[:, None]
+        sampled_adjacency = sampled.sum(axis=-2)                                 # (..., N, L)
+        return edge_probs, sampled, sampled_adjacency

@@ -1,0 +1,181 @@
+"""The recurrent rollout (MODEL.md 2.3): observe 8 steps at once, then scan 12 predictions.
+
+Observation: the selector and encoder run on all observed steps in one call, and the masked
+LSTM folds them with `lax.scan`. Prediction: a `lax.scan` over the remaining steps whose
+carry holds the LSTM state, the last displacement, the evolving edges and the PRNG key.
+
+Noise comes either from a key (`rollout`) or from recorded arrays (`rollout_with_noise`, used
+to replay the release's Gumbel and normal draws in the parity tests); both share one body.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import flax
+import jax
+import jax.numpy as jnp
+
+from gst_jax import graph
+from gst_jax.config import ModelConfig
+from gst_jax.data import SceneBatch
+from gst_jax.gumbel import sample_gumbel
+from gst_jax.model import GST, Controls
+
+__all__ = ["Controls", "RolloutNoise", "RolloutOutput", "rollout", "rollout_with_noise"]
+
+
+@flax.struct.dataclass
+class RolloutNoise:
+    """Every random draw of one rollout, L = N + 1 neighbours (ghost last), G head slots.
+
+    gumbel_obs: (B, T_obs, N, G, L) noise of the observation call.
+    gumbel_pred: (P - 1, B, N, G, L) noise of the prediction calls, in order.
+    normal: (P, B, N, 2) standard normals of GST (P)'s sampled displacements.
+    """
+
+    gumbel_obs: jax.Array
+    gumbel_pred: jax.Array
+    normal: jax.Array
+
+
+@flax.struct.dataclass
+class RolloutOutput:
+    """What one rollout produced. S = T_obs + P - 1 selector calls (observation first).
+
+    displacements: (B, P, N, 2) predicted displacements, zero for pedestrians not predicted
+      (GST (D): mu; GST (P): the sampled displacement).
+    mu, sigma: (B, P, N, 2); corr: (B, P, N): Gaussian parameters from the output head.
+    edge_probs, sampled_edges: (B, S, N, G, L) per target, head slot and neighbour.
+    predicted_mask: (B, N) keep: pedestrians valid at the last observed step.
+    attention: (layers, B, S, heads, N, L) encoder attention, or None unless requested.
+    """
+
+    displacements: jax.Array
+    mu: jax.Array
+    sigma: jax.Array
+    corr: jax.Array
+    edge_probs: jax.Array
+    sampled_edges: jax.Array
+    predicted_mask: jax.Array
+    attention: Any = None
+
+
+def rollout(params, config: ModelConfig, batch: SceneBatch, key: jax.Array, controls: Controls,
+            *, hard: bool, deterministic: bool, return_attention: bool = False) -> RolloutOutput:
+    """Predict `config.pred_len` steps for every pedestrian of `batch`, drawing noise from `key`."""
+    return _rollout(params, config, batch, controls, key, None, hard=hard,
+                    deterministic=deterministic, return_attention=return_attention)
+
+
+def rollout_with_noise(params, config: ModelConfig, batch: SceneBatch, noise: RolloutNoise,
+                       controls: Controls, *, hard: bool, deterministic: bool = True,
+                       dropout_key: jax.Array | None = None,
+                       return_attention: bool = False) -> RolloutOutput:
+    """Like `rollout`, but replaying recorded noise (dropout, if on, still uses a key)."""
+    key = jax.random.key(0) if dropout_key is None else dropout_key
+    return _rollout(params, config, batch, controls, key, noise, hard=hard,
+                    deterministic=deterministic, return_attention=return_attention)
+
+
+def sample_displacement(mu: jax.Array, sigma: jax.Array, corr: jax.Array,
+                        normal: jax.Array) -> jax.Array:
+    """Reparameterised bivariate Gaussian draw: mu + (sx e1, rho sy e1 + sqrt(1-rho^2) sy e2)."""
+    e1, e2 = normal[..., 0], normal[..., 1]
+    dx = sigma[..., 0] * e1
+    dy = sigma[..., 1] * (corr * e1 + jnp.sqrt(1.0 - corr ** 2) * e2)
+    return mu + jnp.stack([dx, dy], axis=-1)
+
+
+def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
+             key: jax.Array, recorded: RolloutNoise | None, *, hard: bool, deterministic: bool,
+             return_attention: bool) -> RolloutOutput:
+    model = GST(config)
+    obs_len, pred_len = config.obs_len, config.pred_len
+    batch_size, _, num_nodes = batch.node_mask.shape
+    noise_shape = (batch_size, num_nodes, config.max_edge_heads, num_nodes + 1)
+    gaussian = config.output == "gaussian"
+
+    def apply(method, *args, key=None, **kwargs):
+        rngs = None if deterministic else {"dropout": key}
+        return model.apply({"params": params}, *args, method=method, rngs=rngs, **kwargs)
+
+    def draw(mu, sigma, corr, normal, keep):
+        delta = sample_displacement(mu, sigma, corr, normal) if gaussian else mu
+        return delta * keep[..., None]
+
+    # --- Observation: one selector/encoder call over all observed steps.
+    node_mask = batch.node_mask[:, :obs_len]                                    # (B, T, N)
+    positions = batch.positions[:, :obs_len]
+    node_features = graph.displacements(positions, node_mask)
+    edge_features = graph.edge_features(positions, node_mask)                   # (B, T, N, N, 2)
+    key, obs_key, dropout_key = jax.random.split(key, 3)
+    if recorded is None:
+        gumbel_obs = sample_gumbel(obs_key, (batch_size, obs_len) + noise_shape[1:])
+    else:
+        gumbel_obs = recorded.gumbel_obs
+    encoded, obs_probs, obs_sampled, obs_attention = apply(
+        GST.interact, node_features, edge_features, node_mask, gumbel_obs, controls,
+        hard=hard, deterministic=deterministic, key=dropout_key)
+
+    def observe(state, step_inputs):
+        inputs, mask = step_inputs
+        return apply(GST.recur, inputs, state, mask), None
+
+    zeros = jnp.zeros((batch_size, num_nodes, config.lstm_hidden), encoded.dtype)
+    (hidden, cell), _ = jax.lax.scan(
+        observe, (zeros, zeros), (jnp.swapaxes(encoded, 0, 1), jnp.swapaxes(node_mask, 0, 1)))
+
+    # --- Prediction: the first displacement comes straight from the observed state.
+    keep = graph.keep_mask(batch.node_mask, obs_len)                            # (B, N)
+    hidden, cell = hidden * keep[..., None], cell * keep[..., None]
+    if recorded is None:
+        key, normal_key = jax.random.split(key)
+        first_normal = jax.random.normal(normal_key, (batch_size, num_nodes, 2))
+    else:
+        first_normal = recorded.normal[0]
+    mu, sigma, corr = apply(GST.readout, hidden)
+    delta = draw(mu, sigma, corr, first_normal, keep)
+
+    def predict_step(carry, recorded_step):
+        hidden, cell, delta, edges, key = carry
+        key, gumbel_key, normal_key, dropout_key = jax.random.split(key, 4)
+        if recorded_step is None:
+            gumbel = sample_gumbel(gumbel_key, noise_shape)
+            normal = jax.random.normal(normal_key, (batch_size, num_nodes, 2))
+        else:
+            gumbel, normal = recorded_step
+        # Sampled displacements feed back detached (the release's `detach_sample`).
+        fed_back = jax.lax.stop_gradient(delta) if gaussian else delta
+        edges = edges + fed_back[..., :, None, :] - fed_back[..., None, :, :]
+        encoded, probs, sampled, attention = apply(
+            GST.interact, fed_back, edges, keep, gumbel, controls, hard=hard,
+            deterministic=deterministic, key=dropout_key)
+        hidden, cell = apply(GST.recur, encoded * keep[..., None], (hidden, cell), keep)
+        mu, sigma, corr = apply(GST.readout, hidden)
+        delta = draw(mu, sigma, corr, normal, keep)
+        outputs = (delta, mu, sigma, corr, probs, sampled,
+                   attention if return_attention else None)
+        return (hidden, cell, delta, edges, key), outputs
+
+    step_noise = None if recorded is None else (recorded.gumbel_pred, recorded.normal[1:])
+    carry = (hidden, cell, delta, edge_features[:, -1], key)
+    _, (deltas, mus, sigmas, corrs, probs, sampled, attention) = jax.lax.scan(
+        predict_step, carry, step_noise, length=pred_len - 1)
+
+    def with_first(first, rest):  # (B, ...) and (P-1, B, ...) -> (B, P, ...)
+        return jnp.concatenate([first[:, None], jnp.swapaxes(rest, 0, 1)], axis=1)
+
+    def obs_then_pred(obs, pred, time_axis):  # obs (.., B, T, ..), pred (P-1, .., B, ..)
+        return jnp.concatenate([obs, jnp.moveaxis(pred, 0, time_axis)], axis=time_axis)
+
+    return RolloutOutput(
+        displacements=with_first(delta, deltas),
+        mu=with_first(mu, mus),
+        sigma=with_first(sigma, sigmas),
+        corr=with_first(corr, corrs),
+        edge_probs=obs_then_pred(obs_probs, probs, 1),
+        sampled_edges=obs_then_pred(obs_sampled, sampled, 1),
+        predicted_mask=keep,
+        attention=obs_then_pred(obs_attention, attention, 2) if return_attention else None,
+    )
