@@ -1,5 +1,18 @@
-"""gst_jax: the Gumbel Social Transformer (Huang et al., RA-L 2022) in JAX/Flax."""
+"""gst_jax: the Gumbel Social Transformer (Huang et al., RA-L 2022) in JAX/Flax.
 
-from gst_jax.config import DataConfig, ModelConfig
+    import gst_jax, jax
+    config = gst_jax.ModelConfig()
+    params = gst_jax.init_params(config, jax.random.key(0))
+    predict = gst_jax.make_predict(config, num_samples=20)
+    batch = gst_jax.make_batch(observed_xy)      # (B, 8, N, 2), NaN = not detected
+    prediction = predict(params, jax.random.key(1), batch)
+    prediction.positions                          # (20, B, 12, N, 2)
+"""
 
-__all__ = ["DataConfig", "ModelConfig"]
+from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.data import SceneBatch, make_batch
+from gst_jax.model import Controls, init_params
+from gst_jax.predict import Prediction, make_predict
+
+__all__ = ["Controls", "DataConfig", "ModelConfig", "Prediction", "SceneBatch", "TrainConfig",
+           "init_params", "make_batch", "make_predict"]

@@ -51,8 +51,10 @@ class ModelConfig:
     Attributes:
       node_dim: d, width of node embeddings and of the LSTM input (32).
       edge_dim: d_e = 2d, width of edge embeddings (64).
-      max_edge_heads: parameter layout of the edge selector is sized for this many heads;
-        every n dividing it is served by the same parameters (n itself is traced).
+      max_edge_heads: head slots G of the edge selector's computation: one compiled program
+        serves every n dividing G (n itself is traced, e.g. vmapped in sweeps). Parameters do
+        not depend on G, so checkpoints move freely between values. 0 = G = max(n, 1), the
+        cheapest program for a single n; 16 serves n in {1, 2, 4, 8, 16}.
       num_edge_heads: the default n (0 = full connection, no selector); a traced override
         can be passed to `apply`.
       ghost: default for the ghost agent switch (traced override possible).
@@ -60,13 +62,13 @@ class ModelConfig:
       lstm_hidden: hidden width of the masked LSTM (32).
       dropout: dropout rate of selector MLP and encoder (0.1).
       output: 'deterministic' (GST (D)) or 'gaussian' (GST (P)).
-      temporal: 'lstm' (paper default) or 'tcn' (the release's temporal-conv readout).
+      temporal: 'lstm' (paper default); the release's 'tcn' readout is not implemented yet.
       obs_len / pred_len: steps observed and predicted.
     """
 
     node_dim: int = 32
     edge_dim: int = 64
-    max_edge_heads: int = 16
+    max_edge_heads: int = 0
     num_edge_heads: int = 1
     ghost: bool = True
     encoder_layers: int = 3
@@ -78,6 +80,20 @@ class ModelConfig:
     temporal: Literal["lstm", "tcn"] = "lstm"
     obs_len: int = 8
     pred_len: int = 12
+
+    def __post_init__(self):
+        if self.selector_dim % self.head_slots:
+            raise ValueError(f"max_edge_heads {self.head_slots} must divide {self.selector_dim}")
+        if self.num_edge_heads and self.head_slots % self.num_edge_heads:
+            raise ValueError(f"num_edge_heads {self.num_edge_heads} must divide max_edge_heads "
+                             f"{self.max_edge_heads}")
+        if self.temporal != "lstm":
+            raise ValueError(f"temporal model {self.temporal!r} is not implemented; use 'lstm'")
+
+    @property
+    def head_slots(self) -> int:
+        """G, the edge selector's head slots (see max_edge_heads)."""
+        return self.max_edge_heads or max(self.num_edge_heads, 1)
 
     @property
     def selector_dim(self) -> int:

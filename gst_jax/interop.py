@@ -116,7 +116,7 @@ def batch_from_reference_inputs(inputs: Mapping[str, np.ndarray]) -> SceneBatch:
 def noise_from_reference(gumbel: Sequence[np.ndarray], normals: Sequence[np.ndarray] | None,
                          num_nodes: int, config: ModelConfig) -> RolloutNoise:
     """Pad the release's per-call noise (.., N, n, N(+1)) into the (.., N, G, N+1) layout."""
-    head_slots, neighbours = config.max_edge_heads, num_nodes + 1
+    head_slots, neighbours = config.head_slots, num_nodes + 1
     if gumbel:
         padded = [np.pad(g, [(0, 0), (0, 0), (0, head_slots - g.shape[2]),
                              (0, neighbours - g.shape[3])]) for g in gumbel]

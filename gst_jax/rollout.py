@@ -93,11 +93,11 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
     model = GST(config)
     obs_len, pred_len = config.obs_len, config.pred_len
     batch_size, _, num_nodes = batch.node_mask.shape
-    noise_shape = (batch_size, num_nodes, config.max_edge_heads, num_nodes + 1)
+    noise_shape = (batch_size, num_nodes, config.head_slots, num_nodes + 1)
     gaussian = config.output == "gaussian"
 
     def apply(method, *args, key=None, **kwargs):
-        rngs = None if deterministic else {"dropout": key}
+        rngs = None if deterministic or key is None else {"dropout": key}
         return model.apply({"params": params}, *args, method=method, rngs=rngs, **kwargs)
 
     def draw(mu, sigma, corr, normal, keep):

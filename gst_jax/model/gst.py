@@ -84,7 +84,7 @@ class GST(nn.Module):
 
 def init_params(config: ModelConfig, key: jax.Array):
     """Fresh parameters (PyTorch-style initialisation) for `config`."""
-    n, width = 4, config.max_edge_heads
+    n, width = 4, config.head_slots
     node_mask = jnp.ones((1, n))
     noise = jnp.zeros((1, n, width, n + 1))
     controls = Controls.make(1.0, max(config.num_edge_heads, 1), True)

@@ -1,7 +1,7 @@
 """Edge Gumbel Selector (MODEL.md 2.1): each target samples at most n neighbours.
 
-The number of edge heads n is a traced value. The 128-wide q/k/v are split into G =
-max_edge_heads groups of width 128/G; head h of an n-head model owns the G/n consecutive
+The number of edge heads n is a traced value. The 128-wide q/k/v are split into
+G = config.head_slots groups of width 128/G; head h of an n-head model owns the G/n consecutive
 groups starting at h G/n, so its dot products are sums over its groups and its slice of
 q/k/v is exactly the release's head h. The shared per-head MLP Linear(hd, hd) lives in the
 top-left hd x hd block of a 128 x 128 weight and is applied to all heads at once as a
@@ -47,8 +47,6 @@ class EdgeSelector(nn.Module):
     def setup(self):
         config = self.config
         width = config.selector_dim
-        if width % config.max_edge_heads:
-            raise ValueError(f"max_edge_heads {config.max_edge_heads} must divide {width}")
         init_heads = max(config.num_edge_heads, 1)
         head_dim = width // init_heads
         self.norm_node = layer_norm()
@@ -77,7 +75,7 @@ class EdgeSelector(nn.Module):
         (..., N, N+1) = sum over heads.
         """
         config = self.config
-        num_groups = config.max_edge_heads
+        num_groups = config.head_slots
         width = config.selector_dim
         d = config.node_dim
         n = controls.num_edge_heads

@@ -1,0 +1,23 @@
+"""Training-time augmentation: a random rotation of every scene (MODEL.md section 3)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from gst_jax.data import SceneBatch
+
+
+def rotate(key: jax.Array, batch: SceneBatch) -> SceneBatch:
+    """Rotate each scene about the origin by an angle uniform in [0, 2 pi).
+
+    The model sees only displacements and relative positions, so the centre of rotation does
+    not matter; missing positions stay zero.
+    """
+    angle = jax.random.uniform(key, batch.scene_mask.shape, maxval=2 * jnp.pi)
+    cos, sin = jnp.cos(angle), jnp.sin(angle)
+    rotation = jnp.stack([jnp.stack([cos, -sin], -1), jnp.stack([sin, cos], -1)], -2)  # (B, 2, 2)
+    positions = jnp.einsum("bxy,btny->btnx", rotation, batch.positions)
+    return dataclasses.replace(batch, positions=positions)

@@ -1,0 +1,207 @@
+"""Model properties: Gumbel sampling, masking, padding and permutation, traced n, keys."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gst_jax import graph, losses
+from gst_jax.config import ModelConfig
+from gst_jax.data import SceneBatch, node_mask_from_positions
+from gst_jax.gumbel import gumbel_softmax, sample_gumbel
+from gst_jax.model import Controls, init_params
+from gst_jax.rollout import RolloutNoise, rollout, rollout_with_noise
+
+CONFIG = ModelConfig(num_edge_heads=4, max_edge_heads=16)
+T, N = 20, 5
+
+
+def scene_batch(positions: np.ndarray, position_mask: np.ndarray) -> SceneBatch:
+    """(B, T, N, 2) positions and (B, T, N) validity -> SceneBatch."""
+    position_mask = position_mask.astype(np.float32)
+    return SceneBatch(positions=(positions * position_mask[..., None]).astype(np.float32),
+                      position_mask=position_mask,
+                      node_mask=node_mask_from_positions(position_mask),
+                      scene_mask=np.ones(positions.shape[0], np.float32),
+                      window_index=np.arange(positions.shape[0], dtype=np.int32))
+
+
+@pytest.fixture(scope="module")
+def walk():
+    """One scene of N walkers; pedestrian 3 leaves after step 12, pedestrian 4 enters at 5."""
+    rng = np.random.default_rng(0)
+    steps = rng.normal(0.0, 0.1, (1, T, N, 2)) + np.array([0.4, 0.0])
+    positions = np.cumsum(steps, axis=1) + rng.uniform(-3, 3, (1, 1, N, 2))
+    mask = np.ones((1, T, N))
+    mask[:, 13:, 3] = 0
+    mask[:, :5, 4] = 0
+    return positions, mask
+
+
+@pytest.fixture(scope="module")
+def params():
+    return init_params(CONFIG, jax.random.key(0))
+
+
+def random_noise(key, batch_size, num_nodes, config=CONFIG) -> RolloutNoise:
+    shape = (num_nodes, config.head_slots, num_nodes + 1)
+    k1, k2, k3 = jax.random.split(key, 3)
+    return RolloutNoise(
+        gumbel_obs=sample_gumbel(k1, (batch_size, config.obs_len) + shape),
+        gumbel_pred=sample_gumbel(k2, (config.pred_len - 1, batch_size) + shape),
+        normal=jax.random.normal(k3, (config.pred_len, batch_size, num_nodes, 2)))
+
+
+def _scatter(g: jax.Array, num_nodes: int, order: np.ndarray) -> jax.Array:
+    """g (..., n, G, n+1) -> (..., N, G, N+1) with target/neighbour k moved to slot order[k]."""
+    small = g.shape[-3]
+    columns = np.append(order, num_nodes)          # the ghost column stays last
+    out = jnp.zeros(g.shape[:-3] + (num_nodes, g.shape[-2], num_nodes + 1), g.dtype)
+    out = out.at[..., order, :, :].set(jnp.zeros(g.shape[:-3] + (small, g.shape[-2], num_nodes + 1))
+                                       .at[..., columns].set(g))
+    return out
+
+
+def move_noise(noise: RolloutNoise, num_nodes: int, order: np.ndarray) -> RolloutNoise:
+    normal = jnp.zeros(noise.normal.shape[:-2] + (num_nodes, 2)).at[..., order, :].set(noise.normal)
+    return RolloutNoise(gumbel_obs=_scatter(noise.gumbel_obs, num_nodes, order),
+                        gumbel_pred=_scatter(noise.gumbel_pred, num_nodes, order), normal=normal)
+
+
+def move_batch(positions, mask, num_nodes, order):
+    big_positions = np.zeros(positions.shape[:2] + (num_nodes, 2))
+    big_mask = np.zeros(mask.shape[:2] + (num_nodes,))
+    big_positions[:, :, order] = positions
+    big_mask[:, :, order] = mask
+    return scene_batch(big_positions, big_mask)
+
+
+def run(params, batch, noise, *, hard=True, tau=0.5, config=CONFIG, n=None):
+    controls = Controls.make(tau, config.num_edge_heads if n is None else n, config.ghost)
+    return rollout_with_noise(params, config, batch, noise, controls, hard=hard,
+                              return_attention=True)
+
+
+# --- building blocks -----------------------------------------------------------------------
+
+def test_hard_gumbel_samples_are_one_hot_with_soft_gradients():
+    log_probs = jnp.log(jnp.array([[0.2, 0.5, 0.3], [0.9, 0.05, 0.05]]))
+    noise = sample_gumbel(jax.random.key(1), log_probs.shape)
+    hard = gumbel_softmax(log_probs, noise, 0.5, hard=True)
+    assert set(np.unique(hard)) <= {0.0, 1.0} and np.all(hard.sum(-1) == 1)
+    weights = jnp.arange(3.0)
+    grad_hard = jax.grad(lambda lp: jnp.sum(gumbel_softmax(lp, noise, 0.5, True) * weights))(log_probs)
+    grad_soft = jax.grad(lambda lp: jnp.sum(gumbel_softmax(lp, noise, 0.5, False) * weights))(log_probs)
+    np.testing.assert_allclose(grad_hard, grad_soft, atol=1e-6)
+    assert np.abs(grad_soft).sum() > 0
+
+
+def test_gumbel_noise_depends_only_on_the_key():
+    a = sample_gumbel(jax.random.key(3), (4, 5))
+    np.testing.assert_array_equal(a, sample_gumbel(jax.random.key(3), (4, 5)))
+    assert not np.allclose(a, sample_gumbel(jax.random.key(4), (4, 5)))
+
+
+def test_fully_masked_attention_row_is_zero_not_nan():
+    scores = jnp.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    mask = jnp.array([[1.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
+    weights = graph.float_mask_attention_weights(scores, mask)
+    np.testing.assert_allclose(weights[1], 0.0)
+    np.testing.assert_allclose(weights[0].sum(), 1.0, rtol=1e-6)
+    assert weights[0, 1] == 0.0
+    grads = jax.grad(lambda s: graph.float_mask_attention_weights(s, mask)[..., 0].sum())(scores)
+    assert np.all(np.isfinite(grads))
+
+
+# --- the whole model -----------------------------------------------------------------------
+
+def test_padding_leaves_real_pedestrians_unchanged(params, walk):
+    positions, mask = walk
+    noise = random_noise(jax.random.key(5), 1, N)
+    small = run(params, scene_batch(positions, mask), noise)
+    order = np.arange(N)
+    padded = run(params, move_batch(positions, mask, N + 3, order), move_noise(noise, N + 3, order))
+    np.testing.assert_allclose(padded.displacements[:, :, :N], small.displacements, atol=1e-5)
+    np.testing.assert_allclose(padded.edge_probs[..., :N, :, :N], small.edge_probs[..., :N], atol=1e-5)
+    np.testing.assert_allclose(padded.edge_probs[..., :N, :, -1], small.edge_probs[..., -1], atol=1e-5)
+    np.testing.assert_array_equal(padded.displacements[:, :, N:], 0.0)
+
+
+def test_permuting_pedestrians_permutes_outputs(params, walk):
+    positions, mask = walk
+    noise = random_noise(jax.random.key(6), 1, N)
+    base = run(params, scene_batch(positions, mask), noise)
+    order = np.array([3, 0, 4, 1, 2])        # pedestrian k moves to slot order[k]
+    moved = run(params, move_batch(positions, mask, N, order), move_noise(noise, N, order))
+    np.testing.assert_allclose(moved.displacements[:, :, order], base.displacements, atol=1e-5)
+    columns = np.append(order, N)
+    np.testing.assert_allclose(moved.sampled_edges[:, :, order][..., columns],
+                               base.sampled_edges, atol=1e-5)
+
+
+def test_absent_pedestrian_gives_no_nan_in_outputs_or_gradients(params, walk):
+    positions, mask = walk
+    mask = mask.copy()
+    mask[:, :, 2] = 0                        # never detected
+    mask[:, 7, 1] = 0                        # missing at the last observed step: not predicted
+    batch = scene_batch(positions, mask)
+    noise = random_noise(jax.random.key(7), 1, N)
+    output = run(params, batch, noise, hard=False)
+    for leaf in jax.tree.leaves(output):
+        assert np.all(np.isfinite(leaf))
+    np.testing.assert_array_equal(output.predicted_mask[0], [1, 0, 0, 1, 1])
+    np.testing.assert_array_equal(output.displacements[0, :, 1:3], 0.0)
+    for output_type in ("deterministic", "gaussian"):
+        config = dataclasses.replace(CONFIG, output=output_type)
+        grads = jax.grad(lambda p: losses.batch_loss(
+            config, run(p, batch, noise, hard=False, config=config), batch))(params)
+        for leaf in jax.tree.leaves(grads):
+            assert np.all(np.isfinite(leaf))
+
+
+def test_hard_samples_pick_exactly_n_neighbours(params, walk):
+    positions, mask = walk
+    output = run(params, scene_batch(positions, mask), random_noise(jax.random.key(8), 1, N))
+    sampled = np.asarray(output.sampled_edges)            # (B, S, N, G, L)
+    assert set(np.unique(sampled)) <= {0.0, 1.0}
+    valid_targets = np.asarray(output.edge_probs).sum(axis=(-2, -1)) > 0
+    np.testing.assert_array_equal(sampled.sum(axis=(-2, -1))[valid_targets], CONFIG.num_edge_heads)
+    assert np.all(sampled[..., CONFIG.num_edge_heads:, :] == 0)   # inactive head slots
+
+
+def test_same_key_same_output_different_key_different_edges(params, walk):
+    positions, mask = walk
+    batch = scene_batch(positions, mask)
+    controls = Controls.make(0.5, 4, True)
+    go = jax.jit(lambda key: rollout(params, CONFIG, batch, key, controls, hard=True,
+                                     deterministic=True))
+    a, b, c = go(jax.random.key(1)), go(jax.random.key(1)), go(jax.random.key(2))
+    np.testing.assert_array_equal(a.displacements, b.displacements)
+    np.testing.assert_array_equal(a.sampled_edges, b.sampled_edges)
+    assert not np.array_equal(a.sampled_edges, c.sampled_edges)
+
+
+def test_traced_n_matches_a_program_built_for_that_n(params, walk):
+    """One program (16 head slots) vmapped over n equals programs with exactly n slots."""
+    positions, mask = walk
+    batch = scene_batch(positions, mask)
+    noise = random_noise(jax.random.key(9), 1, N)
+    heads = jnp.array([0, 1, 2, 4])
+
+    def one(n):
+        controls = Controls(tau=jnp.float32(0.5), num_edge_heads=n, ghost=jnp.bool_(True))
+        return rollout_with_noise(params, CONFIG, batch, noise, controls, hard=False).displacements
+
+    swept = jax.jit(jax.vmap(one))(heads)
+    for k, n in enumerate([0, 1, 2, 4]):
+        exact = ModelConfig(num_edge_heads=n)                    # head_slots = max(n, 1)
+        small_noise = dataclasses.replace(
+            noise, gumbel_obs=noise.gumbel_obs[..., :exact.head_slots, :],
+            gumbel_pred=noise.gumbel_pred[..., :exact.head_slots, :])
+        alone = run(params, batch, small_noise, hard=False, config=exact)
+        np.testing.assert_allclose(swept[k], alone.displacements, atol=2e-5, err_msg=f"n={n}")
+    assert not np.allclose(swept[1], swept[3])

@@ -1,0 +1,122 @@
+"""Training: schedule, loss going down, the non-finite guard, and resume after SIGKILL."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gst_jax import data, train
+from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+
+MODEL = ModelConfig()
+TINY_RUN = ["--scene", "zara1", "--epochs", "3", "--batch-size", "8", "--max-train-windows",
+            "24", "--checkpoint-every", "1"]
+
+
+def _env(tmp_path: Path, **extra: str) -> dict:
+    env = dict(os.environ)
+    # The three processes of the resume test share compiled programs through this cache.
+    env.update(JAX_COMPILATION_CACHE_DIR=str(tmp_path.parent / "jax_cache"),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", **extra)
+    return env
+
+
+def _train(tmp_path: Path, workdir: Path, **env: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "gst_jax.train", *TINY_RUN, "--workdir",
+                           str(workdir)], env=_env(tmp_path, **env), capture_output=True,
+                          text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def fixed_batch():
+    window_set = data.load_split(DataConfig(scene="zara1"), "train")
+    return next(iter(data.training_batches(window_set.subset(range(8)), batch_size=8, seed=0,
+                                           epoch=1)))
+
+
+def test_schedule_matches_release():
+    config = TrainConfig()
+    lrs = [float(train.hparams_for_epoch(MODEL, config, e).learning_rate) for e in (1, 50, 51, 101, 200)]
+    np.testing.assert_allclose(lrs, [1e-3, 1e-3, 3e-4, 9e-5, 2.7e-5], rtol=1e-5)
+    taus = [float(train.hparams_for_epoch(MODEL, config, e).tau) for e in (1, 100, 200)]
+    np.testing.assert_allclose(taus, [(1 - 1 / 200) * 0.47 + 0.03, 0.265, 0.03], rtol=1e-5)
+
+
+def test_loss_goes_down_on_a_fixed_batch(fixed_batch):
+    state = train.create_train_state(MODEL, jax.random.key(0))
+    step = jax.jit(train.make_train_step(MODEL, rotate=False))
+    hparams = train.hparams_for_epoch(MODEL, TrainConfig(), epoch=1)
+    key = jax.random.key(1)
+    losses = []
+    for _ in range(25):
+        state, metrics = step(state, key, fixed_batch, hparams)
+        losses.append(float(metrics["loss"]))
+    assert all(np.isfinite(losses))
+    assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:3]), losses
+
+
+def test_non_finite_step_keeps_parameters(fixed_batch):
+    state = train.create_train_state(MODEL, jax.random.key(0))
+    positions = np.array(fixed_batch.positions)
+    positions[0, 3, np.argmax(fixed_batch.node_mask[0].min(0))] = np.nan  # a fully detected one
+    poisoned = dataclasses.replace(fixed_batch, positions=positions)
+    step = jax.jit(train.make_train_step(MODEL, rotate=False))
+    hparams = train.hparams_for_epoch(MODEL, TrainConfig(), epoch=1)
+    new_state, metrics = step(state, jax.random.key(1), poisoned, hparams)
+    assert not bool(metrics["finite"])
+    chex_equal = jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), new_state.params, state.params)
+    assert all(jax.tree.leaves(chex_equal))
+    assert int(new_state.step) == int(state.step)
+
+
+def test_fit_stops_on_non_finite_and_names_the_batch(tmp_path, fixed_batch, monkeypatch):
+    positions = np.array(fixed_batch.positions)
+    positions[:] = np.nan
+    poisoned = dataclasses.replace(fixed_batch, positions=positions)
+    monkeypatch.setattr(data, "training_batches", lambda *a, **k: iter([fixed_batch, poisoned]))
+    config = TrainConfig(epochs=2, batch_size=8, max_train_windows=8, checkpoint_every=1)
+    with pytest.raises(train.NonFiniteError, match="epoch 1, batch 1"):
+        train.fit(MODEL, DataConfig(scene="zara1"), config, tmp_path / "run")
+    assert not (tmp_path / "run" / "checkpoints" / "1").exists()
+
+
+def test_resume_after_sigkill_matches_uninterrupted_run_and_evaluates(tmp_path):
+    # 24 windows / 8 per step = 3 steps per epoch: killing after step 5 is mid-epoch 2.
+    killed = _train(tmp_path, tmp_path / "resumed", GST_JAX_TEST_KILL_AFTER_STEPS="5")
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    assert (tmp_path / "resumed" / "checkpoints" / "1").exists()
+    assert not (tmp_path / "resumed" / "checkpoints" / "2").exists()
+    resumed = _train(tmp_path, tmp_path / "resumed")
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming" in resumed.stderr
+    straight = _train(tmp_path, tmp_path / "straight")
+    assert straight.returncode == 0, straight.stderr
+
+    from gst_jax.evaluate import load_run
+    a, b = load_run(tmp_path / "resumed"), load_run(tmp_path / "straight")
+    assert a.epoch == b.epoch == 3
+    for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
+    epochs = [json.loads(l)["epoch"] for l in (tmp_path / "resumed" / "metrics.jsonl").read_text().splitlines()]
+    assert epochs == [1, 2, 3]
+
+    evaluated = subprocess.run(
+        [sys.executable, "-m", "gst_jax.evaluate", str(tmp_path / "straight"), "--samples", "4",
+         "--json"], env=_env(tmp_path), capture_output=True, text=True, timeout=600)
+    assert evaluated.returncode == 0, evaluated.stderr
+    result = json.loads(evaluated.stdout)
+    assert result["windows"] == 124 and result["samples"] == 4
+    for name in ("aoe", "foe", "min_ade", "min_fde", "kde_nll", "cv_aoe", "cv_foe"):
+        assert np.isfinite(result[name]), name
+    assert result["min_ade"] <= result["aoe"]
+    assert list((tmp_path / "straight" / "eval").glob("*.json"))
