@@ -240,8 +240,11 @@ def test_make_batch_from_nan_marked_observations():
     xy[..., 0] = np.arange(8)[None, :, None]
     xy[0, :5, 2] = np.nan          # pedestrian 2 appears at step 5
     xy[1, 7, 1] = np.nan           # pedestrian 1 lost at the last step
+    assert data.make_batch(xy, pad_to_bucket=False).shape == (2, 8, 3)
     batch = data.make_batch(xy)
-    assert batch.shape == (2, 8, 3)
+    assert batch.shape == (2, 8, 8)                      # padded to the smallest bucket
+    np.testing.assert_array_equal(batch.position_mask[:, :, 3:], 0)
+    np.testing.assert_array_equal(batch.positions[:, :, 3:], 0)
     np.testing.assert_array_equal(batch.position_mask[0, :, 2], [0] * 5 + [1] * 3)
     np.testing.assert_array_equal(batch.node_mask[0, :, 2], [0] * 6 + [1] * 2)
     assert batch.positions[0, 0, 2].tolist() == [0, 0]

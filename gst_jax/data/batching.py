@@ -82,10 +82,13 @@ def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
             yield pad_windows([window_set[i] for i in chosen], size, batch_size, chosen)
 
 
-def make_batch(observed_xy: np.ndarray) -> SceneBatch:
+def make_batch(observed_xy: np.ndarray, *, pad_to_bucket: bool = True) -> SceneBatch:
     """A prediction batch from observations (B, T_obs, N, 2), NaN where nobody was detected.
 
-    This is the robot's use: feed the last T_obs tracked positions of everyone in view.
+    This is the robot's use: feed the last T_obs tracked positions of everyone in view. With
+    `pad_to_bucket` the pedestrian axis is padded (with undetected slots) to the next bucket
+    size, so a planner whose crowd changes size reuses a few compiled programs; pedestrian k
+    keeps slot k.
     """
     xy = np.asarray(observed_xy, dtype=np.float64)
     if xy.ndim != 4 or xy.shape[-1] != 2:
@@ -106,6 +109,11 @@ def make_batch(observed_xy: np.ndarray) -> SceneBatch:
     if len(empty):
         raise ValueError(f"scene(s) {empty.tolist()} have no detected pedestrian (all NaN)")
     batch_size = xy.shape[0]
+    if pad_to_bucket:
+        extra = bucket_size(xy.shape[2]) - xy.shape[2]
+        xy = np.pad(xy, [(0, 0), (0, 0), (0, extra), (0, 0)])
+        missing = np.pad(missing, [(0, 0), (0, 0), (0, extra), (0, 0)], constant_values=True)
+        position_mask = np.pad(position_mask, [(0, 0), (0, 0), (0, extra)])
     return SceneBatch(positions=np.where(missing, 0.0, xy).astype(np.float32),
                       position_mask=position_mask,
                       node_mask=node_mask_from_positions(position_mask),

@@ -1,0 +1,81 @@
+"""Metrics on hand-built predictions whose values are computed by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gst_jax import metrics
+
+P = 4
+
+
+def straight_away(speeds):
+    """(K, 1, P, 1, 2): sample k moves along x at speeds[k] m/step from the origin."""
+    steps = np.arange(1, P + 1)
+    return np.stack([np.stack([s * steps, 0 * steps], -1) for s in speeds])[:, None, :, None, :]
+
+
+def test_aoe_foe_min_ade_fde_by_hand():
+    truth = np.zeros((1, P, 1, 2))
+    pred = straight_away([1.0, 0.5])          # errors t+1 and (t+1)/2 at step t
+    mask = np.ones((1, 1))
+    sums = metrics.aoe_foe_sums(pred, truth, mask)
+    np.testing.assert_allclose(sums["aoe_sum"], [2.5, 1.25])      # mean(1, 2, 3, 4) = 2.5
+    np.testing.assert_allclose(sums["foe_sum"], [4.0, 2.0])
+    assert sums["count"] == 1
+    best = metrics.min_ade_fde_sums(pred, truth, mask)
+    assert best["min_ade_sum"] == pytest.approx(1.25) and best["min_fde_sum"] == pytest.approx(2.0)
+    assert metrics.aoe_foe_sums(pred, truth, np.zeros((1, 1)))["count"] == 0
+
+
+def test_kde_nll_matches_the_gaussian_kde_formula():
+    rng = np.random.default_rng(0)
+    samples = rng.normal(size=(20, 2)) * [0.3, 0.1] + [1.0, 2.0]
+    point = np.array([1.1, 1.9])
+    # Scott's rule in 2-D: bandwidth factor K^(-1/6) times the sample covariance.
+    covariance = np.cov(samples.T) * len(samples) ** (-2 / 6)
+    inverse, det = np.linalg.inv(covariance), np.linalg.det(covariance)
+    diffs = point - samples
+    kernels = np.exp(-0.5 * np.einsum("ki,ij,kj->k", diffs, inverse, diffs)) / (2 * np.pi * np.sqrt(det))
+    expected = np.log(kernels.mean())
+    assert metrics.kde_log_density(samples, point) == pytest.approx(expected, rel=1e-6)
+    # Far from all samples the log density is clipped at -20.
+    assert metrics.kde_log_density(samples, point + 100) == metrics.KDE_LOG_DENSITY_FLOOR
+    # Identical samples (GST (D) drawing one graph K times) have no density: the floor.
+    assert metrics.kde_log_density(np.ones((20, 2)), point) == metrics.KDE_LOG_DENSITY_FLOOR
+
+    pred = np.broadcast_to(samples[:, None, None, None, :], (20, 1, P, 1, 2))
+    truth = np.broadcast_to(point, (1, P, 1, 2))
+    sums = metrics.kde_nll_sums(pred, truth, np.ones((1, 1)))
+    assert sums["count"] == 1 and sums["nll_sum"] == pytest.approx(-expected, rel=1e-6)
+
+
+def test_collisions_count_pairs_closer_than_10_cm():
+    positions = np.zeros((1, P, 3, 2))
+    positions[0, :, 1, 0] = 1.0                # pedestrian 1 one metre away throughout
+    positions[0, :, 2, 0] = [3.0, 2.0, 1.05, 3.0]  # pedestrian 2 passes within 5 cm of 1 at step 2
+    collisions, pairs = metrics.collision_sums(positions, np.ones((1, 3)))
+    assert (collisions, pairs) == (1.0, 3.0)
+    collisions, pairs = metrics.collision_sums(positions, np.array([[1.0, 1.0, 0.0]]))
+    assert (collisions, pairs) == (0.0, 1.0)
+    step_mask = np.ones((1, P, 3))
+    step_mask[0, 2, 2] = 0                     # not observed at the close step
+    collisions, _ = metrics.collision_sums(positions, np.ones((1, 3)), step_mask)
+    assert collisions == 0.0
+    per_sample = metrics.collision_sums(np.stack([positions, positions + [[0.0, 0.0]]]),
+                                        np.ones((1, 3)))
+    np.testing.assert_array_equal(per_sample[0], [1.0, 1.0])
+
+
+def test_constant_velocity_repeats_the_last_displacement():
+    obs = np.zeros((1, 3, 2, 2))
+    obs[0, :, 0] = [[0, 0], [1, 0], [2, 1]]    # last step (1, 1)
+    obs[0, :, 1] = [[5, 5], [5, 5], [5, 5]]
+    node_mask = np.ones((1, 3, 2))
+    future = metrics.constant_velocity(obs, node_mask, pred_len=2)
+    np.testing.assert_allclose(future[0, :, 0], [[3, 2], [4, 3]])
+    np.testing.assert_allclose(future[0, :, 1], [[5, 5], [5, 5]])
+    node_mask[0, 2, 0] = 0                     # no last displacement: stays put
+    np.testing.assert_allclose(metrics.constant_velocity(obs, node_mask, pred_len=2)[0, :, 0],
+                               [[2, 1], [2, 1]])

@@ -1,0 +1,56 @@
+"""The prediction API: make_batch from NaN-marked observations, jitted predict, compiles."""
+
+from __future__ import annotations
+
+import chex
+import jax
+import numpy as np
+
+import gst_jax
+
+CONFIG = gst_jax.ModelConfig()
+K = 3
+
+
+def observations(num_pedestrians: int, seed: int = 0) -> np.ndarray:
+    """(1, 8, N, 2) walkers; the last one appears at step 6, the first is lost at step 7."""
+    rng = np.random.default_rng(seed)
+    xy = np.cumsum(rng.normal(0.4, 0.05, (1, 8, num_pedestrians, 2)), axis=1)
+    xy += rng.uniform(-4, 4, (1, 1, num_pedestrians, 2))
+    xy[0, :6, -1] = np.nan
+    xy[0, 7, 0] = np.nan
+    return xy
+
+
+def test_predict_from_nan_marked_observations():
+    params = gst_jax.init_params(CONFIG, jax.random.key(0))
+    predict = gst_jax.make_predict(CONFIG, num_samples=K)
+    xy = observations(5)
+    prediction = predict(params, jax.random.key(1), gst_jax.make_batch(xy))
+    assert prediction.positions.shape == (K, 1, 12, 8, 2)
+    assert prediction.sampled_adjacency.shape == (K, 1, 19, 8, 9)
+    assert prediction.edge_probs.shape == (K, 1, 19, 8, 1, 9)
+    np.testing.assert_array_equal(prediction.predicted_mask[0], [0, 1, 1, 1, 1, 0, 0, 0])
+    positions = np.asarray(prediction.positions)
+    assert np.all(np.isfinite(positions))
+    np.testing.assert_array_equal(positions[:, 0, :, [0, 5, 6, 7]], 0.0)
+    # Positions continue from the last observation by the predicted displacements.
+    np.testing.assert_allclose(positions[:, 0, 0, 1:5],
+                               xy[0, 7, 1:5] + prediction.displacements[:, 0, 0, 1:5], atol=1e-5)
+    # n = 1: every predicted target picks exactly one neighbour (possibly the ghost).
+    np.testing.assert_allclose(np.asarray(prediction.sampled_adjacency)[:, 0, 8:, 1:5].sum(-1), 1.0)
+    # K samples are different draws of the graph.
+    assert not np.array_equal(prediction.sampled_adjacency[0], prediction.sampled_adjacency[1])
+
+
+def test_predict_compiles_once_per_bucket():
+    params = gst_jax.init_params(CONFIG, jax.random.key(0))
+    predict = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False)
+    counted = jax.jit(chex.assert_max_traces(predict.__wrapped__, n=2))
+    for num_pedestrians, seed in [(3, 0), (5, 1), (8, 2), (9, 3), (12, 4)]:   # buckets 8 and 16
+        batch = gst_jax.make_batch(observations(num_pedestrians, seed))
+        out = counted(params, jax.random.key(seed), batch)
+        assert out.positions.shape[3] == (8 if num_pedestrians <= 8 else 16)
+    for num_pedestrians in (3, 7, 12):
+        predict(params, jax.random.key(0), gst_jax.make_batch(observations(num_pedestrians)))
+    assert predict._cache_size() == 2
