@@ -32,6 +32,10 @@ def add_model_flags(parser: argparse.ArgumentParser) -> None:
                        help="disable the ghost agent (the 'attend to nobody' neighbour)")
     group.add_argument("--output", default="deterministic", choices=("deterministic", "gaussian"),
                        help="GST (D): displacements; GST (P): bivariate Gaussians (default: D)")
+    group.add_argument("--temporal", default="lstm", choices=("lstm", "tcn"),
+                       help="lstm: recurrent rollout, interacting at every predicted step "
+                            "(paper); tcn: the release's temporal convolution readout of the "
+                            "observed steps (default: lstm)")
 
 
 def add_train_flags(parser: argparse.ArgumentParser) -> None:
@@ -67,7 +71,7 @@ def data_config(args: argparse.Namespace) -> DataConfig:
 
 def model_config(args: argparse.Namespace) -> ModelConfig:
     return ModelConfig(num_edge_heads=args.edge_heads, ghost=not args.no_ghost,
-                       output=args.output)
+                       output=args.output, temporal=args.temporal)
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:
@@ -85,6 +89,8 @@ def run_name(data: DataConfig, model: ModelConfig, train: TrainConfig) -> str:
              f"n{model.num_edge_heads}"]
     if not model.ghost:
         parts.append("noghost")
+    if model.temporal != "lstm":
+        parts.append(model.temporal)
     if train.fully_detected_only:
         parts.append("fd")
     parts += [f"e{train.epochs}", f"seed{train.seed}"]

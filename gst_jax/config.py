@@ -62,7 +62,9 @@ class ModelConfig:
       lstm_hidden: hidden width of the masked LSTM (32).
       dropout: dropout rate of selector MLP and encoder (0.1).
       output: 'deterministic' (GST (D)) or 'gaussian' (GST (P)).
-      temporal: 'lstm' (paper default); the release's 'tcn' readout is not implemented yet.
+      temporal: 'lstm' (paper default: recurrent rollout with interaction at every predicted
+        step) or 'tcn' (the release's temporal convolution readout: interaction over the
+        observed steps only, all predicted steps at once).
       obs_len / pred_len: steps observed and predicted.
     """
 
@@ -87,8 +89,8 @@ class ModelConfig:
         if self.num_edge_heads and self.head_slots % self.num_edge_heads:
             raise ValueError(f"num_edge_heads {self.num_edge_heads} must divide max_edge_heads "
                              f"{self.max_edge_heads}")
-        if self.temporal != "lstm":
-            raise ValueError(f"temporal model {self.temporal!r} is not implemented; use 'lstm'")
+        if self.temporal not in ("lstm", "tcn"):
+            raise ValueError(f"temporal model {self.temporal!r}: expected 'lstm' or 'tcn'")
 
     @property
     def head_slots(self) -> int:

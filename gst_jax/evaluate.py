@@ -19,9 +19,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gst_jax import data, metrics
+from gst_jax import data, graph, metrics
 from gst_jax.checkpoints import Checkpointer
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.model import Controls
 from gst_jax.predict import make_predict
 
 # Scenes whose batches of (padded) pedestrians fit this many padded edges share one program.
@@ -30,9 +31,17 @@ DEFAULT_EDGE_BUDGET = 16 * 32 * 32
 
 def evaluate_params(params, model_config: ModelConfig, window_set, key: jax.Array, *,
                     num_samples: int = 20, edge_budget: int = DEFAULT_EDGE_BUDGET,
-                    with_kde: bool = True, with_baseline: bool = True) -> dict[str, Any]:
-    """Evaluate `params` on every window of `window_set`; returns a flat dict of metrics."""
-    predict = make_predict(model_config, num_samples=num_samples, with_graph=False)
+                    with_kde: bool = True, with_baseline: bool = True,
+                    fully_detected_only: bool = False, controls: Controls | None = None,
+                    predict=None) -> dict[str, Any]:
+    """Evaluate `params` on every window of `window_set`; returns a flat dict of metrics.
+
+    fully_detected_only: the model observes fully detected pedestrians only (a run trained
+    with the "F" baseline is tested the same way). controls: traced n / ghost overriding the
+    config's (sweeps), with tau = 0.03. predict: a `make_predict(model_config, num_samples,
+    with_graph=False)` to reuse across calls (one compile per bucket for many members).
+    """
+    predict = predict or make_predict(model_config, num_samples=num_samples, with_graph=False)
     obs_len = model_config.obs_len
     totals: dict[str, Any] = {}
 
@@ -41,7 +50,9 @@ def evaluate_params(params, model_config: ModelConfig, window_set, key: jax.Arra
 
     batches = data.evaluation_batches(window_set, edge_budget=edge_budget)
     for batch_index, batch in enumerate(batches):
-        prediction = predict(params, jax.random.fold_in(key, batch_index), batch)
+        if fully_detected_only:
+            batch = jax.tree.map(np.asarray, graph.drop_partially_detected(batch, True))
+        prediction = predict(params, jax.random.fold_in(key, batch_index), batch, controls)
         pred = np.asarray(prediction.positions)                      # (K, B, P, N, 2)
         truth = np.asarray(batch.positions[:, obs_len:])             # (B, P, N, 2)
         eval_mask = metrics.fully_detected_mask(batch.node_mask) * batch.scene_mask[:, None]
@@ -203,7 +214,8 @@ def main(argv: list[str] | None = None) -> None:
                                       protocol=args.protocol or run.data_config.protocol)
     window_set = data.load_split(data_config, args.split)
     result = evaluate_params(run.params, run.model_config, window_set, jax.random.key(args.seed),
-                             num_samples=args.samples, with_kde=not args.no_kde)
+                             num_samples=args.samples, with_kde=not args.no_kde,
+                             fully_detected_only=run.train_config.fully_detected_only)
     result.update(scene=data_config.scene, protocol_name=data_config.protocol, split=args.split,
                   windows=len(window_set), epoch=run.epoch, output=run.model_config.output,
                   num_edge_heads=run.model_config.num_edge_heads,

@@ -6,6 +6,8 @@ the neighbour and i the target, as in the release (`A[t, j, i] = x_j - x_i`).
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
@@ -67,3 +69,12 @@ def float_mask_attention_weights(scores: jax.Array, mask: jax.Array) -> jax.Arra
 def masked_categorical(logits: jax.Array, mask: jax.Array) -> jax.Array:
     """Edge probabilities p = softmax(logits) restricted to valid edges (MODEL.md 2.1 step 7)."""
     return float_mask_attention_weights(logits, mask)
+
+
+def drop_partially_detected(batch: SceneBatch, enabled: jax.Array | bool) -> SceneBatch:
+    """Remove partially detected pedestrians from every scene when `enabled` (may be traced):
+    the paper's "F" baseline, which observes only pedestrians tracked for the whole window."""
+    keep = jnp.where(enabled, fully_detected_mask(batch.node_mask), 1.0)[:, None, :]
+    return dataclasses.replace(batch, positions=batch.positions * keep[..., None],
+                               position_mask=batch.position_mask * keep,
+                               node_mask=batch.node_mask * keep)

@@ -3,6 +3,8 @@
 Observation: the selector and encoder run on all observed steps in one call, and the masked
 LSTM folds them with `lax.scan`. Prediction: a `lax.scan` over the remaining steps whose
 carry holds the LSTM state, the last displacement, the evolving edges and the PRNG key.
+With `temporal='tcn'` the prediction is instead the release's convolutional readout of the
+encoded observed steps, all predicted steps at once.
 
 Noise comes either from a key (`rollout`) or from recorded arrays (`rollout_with_noise`, used
 to replay the release's Gumbel and normal draws in the parity tests); both share one body.
@@ -41,7 +43,8 @@ class RolloutNoise:
 
 @flax.struct.dataclass
 class RolloutOutput:
-    """What one rollout produced. S = T_obs + P - 1 selector calls (observation first).
+    """What one rollout produced. S selector calls, observation first: T_obs + P - 1 with the
+    LSTM, T_obs with the TCN readout (which does not interact while predicting).
 
     displacements: (B, P, N, 2) predicted displacements, zero for pedestrians not predicted
       (GST (D): mu; GST (P): the sampled displacement).
@@ -117,6 +120,23 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
     encoded, obs_probs, obs_sampled, obs_attention = apply(
         GST.interact, node_features, edge_features, node_mask, gumbel_obs, controls,
         hard=hard, deterministic=deterministic, key=dropout_key)
+    keep = graph.keep_mask(batch.node_mask, obs_len)                            # (B, N)
+    if recorded is None:
+        key, normal_key = jax.random.split(key)
+        normal = jax.random.normal(normal_key, (pred_len, batch_size, num_nodes, 2))
+    else:
+        normal = recorded.normal
+
+    if config.temporal == "tcn":
+        # Readout: every predicted step from the observed encodings; no further interaction.
+        key, dropout_key = jax.random.split(key)
+        observed = encoded * node_mask[..., None] * keep[:, None, :, None]
+        mu, sigma, corr = apply(GST.convolve, observed, deterministic=deterministic,
+                                key=dropout_key)
+        displacements = draw(mu, sigma, corr, jnp.swapaxes(normal, 0, 1), keep[:, None])
+        return RolloutOutput(displacements=displacements, mu=mu, sigma=sigma, corr=corr,
+                             edge_probs=obs_probs, sampled_edges=obs_sampled, predicted_mask=keep,
+                             attention=obs_attention if return_attention else None)
 
     def observe(state, step_inputs):
         inputs, mask = step_inputs
@@ -127,24 +147,16 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
         observe, (zeros, zeros), (jnp.swapaxes(encoded, 0, 1), jnp.swapaxes(node_mask, 0, 1)))
 
     # --- Prediction: the first displacement comes straight from the observed state.
-    keep = graph.keep_mask(batch.node_mask, obs_len)                            # (B, N)
     hidden, cell = hidden * keep[..., None], cell * keep[..., None]
-    if recorded is None:
-        key, normal_key = jax.random.split(key)
-        first_normal = jax.random.normal(normal_key, (batch_size, num_nodes, 2))
-    else:
-        first_normal = recorded.normal[0]
     mu, sigma, corr = apply(GST.readout, hidden)
-    delta = draw(mu, sigma, corr, first_normal, keep)
+    delta = draw(mu, sigma, corr, normal[0], keep)
 
     def predict_step(carry, recorded_step):
         hidden, cell, delta, edges, key = carry
-        key, gumbel_key, normal_key, dropout_key = jax.random.split(key, 4)
-        if recorded_step is None:
+        key, gumbel_key, dropout_key = jax.random.split(key, 3)
+        gumbel, normal = recorded_step
+        if gumbel is None:
             gumbel = sample_gumbel(gumbel_key, noise_shape)
-            normal = jax.random.normal(normal_key, (batch_size, num_nodes, 2))
-        else:
-            gumbel, normal = recorded_step
         # Sampled displacements feed back detached (the release's `detach_sample`).
         fed_back = jax.lax.stop_gradient(delta) if gaussian else delta
         edges = edges + fed_back[..., :, None, :] - fed_back[..., None, :, :]
@@ -158,7 +170,7 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
                    attention if return_attention else None)
         return (hidden, cell, delta, edges, key), outputs
 
-    step_noise = None if recorded is None else (recorded.gumbel_pred, recorded.normal[1:])
+    step_noise = (None if recorded is None else recorded.gumbel_pred, normal[1:])
     carry = (hidden, cell, delta, edge_features[:, -1], key)
     _, (deltas, mus, sigmas, corrs, probs, sampled, attention) = jax.lax.scan(
         predict_step, carry, step_noise, length=pred_len - 1)

@@ -31,7 +31,7 @@ from gst_jax import augment, data, losses, rollout as rollout_lib
 from gst_jax.checkpoints import Checkpointer
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.data import SceneBatch
-from gst_jax.graph import fully_detected_mask
+from gst_jax.graph import drop_partially_detected
 from gst_jax.model import init_params
 
 
@@ -88,24 +88,13 @@ def hparams_for_epoch(model_config: ModelConfig, train_config: TrainConfig, epoc
     )
 
 
-def keep_fully_detected_only(batch: SceneBatch, enabled: jax.Array) -> SceneBatch:
-    """Remove partially detected pedestrians from the scene when `enabled` (traced switch)."""
-    keep = jnp.where(enabled, fully_detected_mask(batch.node_mask), 1.0)[:, None, :]
-    return dataclasses.replace(
-        batch,
-        positions=batch.positions * keep[..., None],
-        position_mask=batch.position_mask * keep,
-        node_mask=batch.node_mask * keep,
-    )
-
-
 def batch_loss(params, model_config: ModelConfig, batch: SceneBatch, key: jax.Array,
                hparams: HParams, *, rotate: bool) -> jax.Array:
     """Mean over real scenes of the per-scene training loss (soft Gumbel samples, dropout on)."""
     rotate_key, rollout_key = jax.random.split(key)
     if rotate:
         batch = augment.rotate(rotate_key, batch)
-    batch = keep_fully_detected_only(batch, hparams.fully_detected_only)
+    batch = drop_partially_detected(batch, hparams.fully_detected_only)
     controls = rollout_lib.Controls(tau=hparams.tau, num_edge_heads=hparams.num_edge_heads,
                                     ghost=hparams.ghost)
     output = rollout_lib.rollout(params, model_config, batch, rollout_key, controls,
@@ -268,8 +257,9 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
                   "step": int(state.step)}
         if val_set is not None and train_config.eval_every and (
                 epoch % train_config.eval_every == 0 or epoch == train_config.epochs):
-            val = evaluate.evaluate_params(state.params, model_config, val_set,
-                                           jax.random.fold_in(base_key, -epoch), num_samples=1)
+            val = evaluate.evaluate_params(
+                state.params, model_config, val_set, jax.random.fold_in(base_key, -epoch),
+                num_samples=1, fully_detected_only=train_config.fully_detected_only)
             record.update(val_aoe=val["aoe"], val_foe=val["foe"])
         if epoch % train_config.checkpoint_every == 0 or epoch == train_config.epochs:
             checkpointer.save(epoch, state, config)
@@ -298,8 +288,7 @@ def main(argv: list[str] | None = None) -> None:
     from gst_jax import cli
 
     parser = argparse.ArgumentParser(
-        prog="python -m gst_jax.train", description=__doc__.split("\n\n")[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        prog="python -m gst_jax.train", description=__doc__.split("\n\n")[0])
     cli.add_data_flags(parser)
     cli.add_model_flags(parser)
     cli.add_train_flags(parser)

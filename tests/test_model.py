@@ -205,3 +205,28 @@ def test_traced_n_matches_a_program_built_for_that_n(params, walk):
         alone = run(params, batch, small_noise, hard=False, config=exact)
         np.testing.assert_allclose(swept[k], alone.displacements, atol=2e-5, err_msg=f"n={n}")
     assert not np.allclose(swept[1], swept[3])
+
+
+def test_tcn_readout_predicts_from_observations_only_without_nan(walk):
+    """The release's TCN variant: S = T_obs selector calls, future positions ignored,
+    absent pedestrians give finite outputs and gradients (D and P)."""
+    positions, mask = walk
+    mask = mask.copy()
+    mask[:, :, 2] = 0
+    for output_type in ("deterministic", "gaussian"):
+        config = dataclasses.replace(CONFIG, temporal="tcn", output=output_type)
+        params = init_params(config, jax.random.key(0))
+        noise = random_noise(jax.random.key(9), 1, N, config)
+        batch = scene_batch(positions, mask)
+        output = run(params, batch, noise, hard=False, config=config)
+        assert output.displacements.shape == (1, config.pred_len, N, 2)
+        assert output.sampled_edges.shape[1] == config.obs_len
+        np.testing.assert_array_equal(output.displacements[0, :, 2], 0.0)
+        future_moved = positions.copy()
+        future_moved[:, config.obs_len:] += 5.0
+        moved = run(params, scene_batch(future_moved, mask), noise, hard=False, config=config)
+        np.testing.assert_array_equal(moved.displacements, output.displacements)
+        grads = jax.grad(lambda p: losses.batch_loss(
+            config, run(p, batch, noise, hard=False, config=config), batch))(params)
+        assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
+        assert np.abs(grads["tcn"]["time_conv_0"]["kernel"]).sum() > 0

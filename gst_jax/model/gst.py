@@ -13,24 +13,29 @@ from gst_jax.config import ModelConfig
 from gst_jax.graph import adjacency
 from gst_jax.model.controls import Controls
 from gst_jax.model.encoder import NodeEncoderLayer
-from gst_jax.model.layers import torch_dense
+from gst_jax.model.layers import DenseParams, torch_dense
 from gst_jax.model.recurrent import MaskedLSTMCell
 from gst_jax.model.selector import EdgeSelector
+from gst_jax.model.temporal import TemporalConvReadout
 
 
 class GST(nn.Module):
-    """Embeddings, edge selector, node encoder, masked LSTM and output head."""
+    """Embeddings, edge selector, node encoder, and a temporal model: the masked LSTM with
+    its output head (`recur`, `readout`), or the release's convolutional readout (`convolve`)."""
 
     config: ModelConfig
 
     def setup(self):
         config = self.config
         self.node_embedding = torch_dense(config.node_dim, 2)
-        self.edge_embedding = torch_dense(config.edge_dim, 2)
+        self.edge_embedding = DenseParams(config.edge_dim, 2)  # used in factorised form
         self.edge_selector = EdgeSelector(config)
         self.node_encoder_layers = [NodeEncoderLayer(config) for _ in range(config.encoder_layers)]
-        self.lstm = MaskedLSTMCell(config.lstm_hidden)
-        self.hidden2pos = torch_dense(5, config.lstm_hidden)
+        if config.temporal == "lstm":
+            self.lstm = MaskedLSTMCell(config.lstm_hidden)
+            self.hidden2pos = torch_dense(5, config.lstm_hidden)
+        else:
+            self.tcn = TemporalConvReadout(config.obs_len, config.pred_len, dropout=config.dropout)
 
     def interact(self, node_features: jax.Array, edge_features: jax.Array, node_mask: jax.Array,
                  noise: jax.Array, controls: Controls, *, hard: bool, deterministic: bool):
@@ -42,9 +47,8 @@ class GST(nn.Module):
         """
         edges = adjacency(node_mask)
         node_embedding = self.node_embedding(node_features)
-        edge_embedding = self.edge_embedding(edge_features)
         edge_probs, sampled_edges, sampled_adjacency = self.edge_selector(
-            node_embedding, edge_embedding, edges, noise, controls, hard=hard,
+            node_embedding, edge_features, self.edge_embedding(), edges, noise, controls, hard=hard,
             deterministic=deterministic)
         # Full connection (n = 0): the observed adjacency itself, no ghost.
         full = jnp.concatenate([edges, jnp.zeros_like(edges[..., :1])], axis=-1)
@@ -70,24 +74,34 @@ class GST(nn.Module):
 
     def readout(self, hidden: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Gaussian parameters of the next displacement: mu (..., 2), sigma (..., 2), corr (...)."""
-        out = self.hidden2pos(hidden)
-        return out[..., :2], jnp.exp(out[..., 2:4]), jnp.tanh(out[..., 4])
+        return _gaussian(self.hidden2pos(hidden))
+
+    def convolve(self, encoded: jax.Array, *, deterministic: bool):
+        """TCN: Gaussian parameters of all P steps from encoded observations (B, T_obs, N, d)."""
+        return _gaussian(self.tcn(encoded, deterministic=deterministic))
 
     def __call__(self, node_features, edge_features, node_mask, noise, controls):
-        """Touch every parameter once (used by `init`)."""
+        """Touch every parameter once (used by `init`); inputs have a time axis (1, T_obs, ...)."""
         encoded, *_ = self.interact(node_features, edge_features, node_mask, noise, controls,
                                     hard=False, deterministic=True)
+        if self.config.temporal == "tcn":
+            return self.convolve(encoded, deterministic=True)
         zeros = jnp.zeros(encoded.shape[:-1] + (self.config.lstm_hidden,))
         hidden, _ = self.recur(encoded, (zeros, zeros), node_mask)
         return self.readout(hidden)
 
 
+def _gaussian(raw: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Raw head outputs (..., 5) -> mu (..., 2), sigma = exp (..., 2), corr = tanh (...)."""
+    return raw[..., :2], jnp.exp(raw[..., 2:4]), jnp.tanh(raw[..., 4])
+
+
 def init_params(config: ModelConfig, key: jax.Array):
     """Fresh parameters (PyTorch-style initialisation) for `config`."""
-    n, width = 4, config.head_slots
-    node_mask = jnp.ones((1, n))
-    noise = jnp.zeros((1, n, width, n + 1))
+    n, steps = 4, (1, config.obs_len)
+    node_mask = jnp.ones(steps + (n,))
+    noise = jnp.zeros(steps + (n, config.head_slots, n + 1))
     controls = Controls.make(1.0, max(config.num_edge_heads, 1), True)
-    variables = GST(config).init(key, jnp.zeros((1, n, 2)), jnp.zeros((1, n, n, 2)), node_mask,
-                                 noise, controls)
+    variables = GST(config).init(key, jnp.zeros(steps + (n, 2)), jnp.zeros(steps + (n, n, 2)),
+                                 node_mask, noise, controls)
     return variables["params"]

@@ -32,3 +32,28 @@ def torch_dense(features: int, fan_in: int, name: str | None = None) -> nn.Dense
 def layer_norm(name: str | None = None) -> nn.LayerNorm:
     """torch.nn.LayerNorm's epsilon (1e-5), not flax's default (1e-6)."""
     return nn.LayerNorm(epsilon=1e-5, name=name)
+
+
+class DenseParams(nn.Module):
+    """The (kernel, bias) of a torch-initialised Linear(fan_in, features), for layers whose
+    product is computed in factorised form rather than by calling the layer."""
+
+    features: int
+    fan_in: int
+
+    @nn.compact
+    def __call__(self) -> tuple[jax.Array, jax.Array]:
+        init = torch_uniform(self.fan_in)
+        return (self.param("kernel", init, (self.fan_in, self.features)),
+                self.param("bias", init, (self.features,)))
+
+
+class LayerNormParams(nn.Module):
+    """The (scale, bias) of a LayerNorm over `features`, for factorised use."""
+
+    features: int
+
+    @nn.compact
+    def __call__(self) -> tuple[jax.Array, jax.Array]:
+        return (self.param("scale", nn.initializers.ones, (self.features,)),
+                self.param("bias", nn.initializers.zeros, (self.features,)))
