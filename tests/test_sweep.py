@@ -72,3 +72,39 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
     assert "| F (full connection) | partial | 1 |" in (tmp_path / "results.md").read_text()
     assert (tmp_path / "aoe_foe_vs_n.png").stat().st_size > 10_000
 
+
+
+def _fake_evaluations(aoe_by_member: dict) -> tuple[list, list]:
+    members = list(aoe_by_member)
+    evaluations = [{"aoe": aoe, "foe": 2 * aoe, "cv_aoe": 1.0, "cv_foe": 2.0}
+                   for aoe in aoe_by_member.values()]
+    return members, evaluations
+
+
+def test_summary_quantities_and_cross_dataset_figures(tmp_path):
+    """Best n, sparse-vs-full and partial-vs-full improvements from hand-made AOEs."""
+    from gst_jax import figures
+
+    M = sweep.Member
+    all_results = []
+    for scene, best in (("zara1", 0.4), ("hotel", 0.2)):
+        members, evaluations = _fake_evaluations({
+            M(0, False, 1): 0.5, M(0, False, 2): 0.7,      # full connection, partial: 0.6
+            M(4, False, 1): best, M(4, False, 2): best,    # n = 4, partial
+            M(1, False, 1): 0.55, M(1, False, 2): 0.55,
+            M(4, True, 1): 0.5, M(4, True, 2): 0.5})       # n = 4, fully detected only
+        window_set = data.load_split(DataConfig(scene=scene), "test").subset(range(5))
+        results = sweep.summarize(evaluations, members, DataConfig(scene=scene),
+                                  TrainConfig(epochs=1), 2, window_set)
+        all_results.append(results)
+    zara1 = all_results[0]
+    cell = {(r["edge_heads"], r["detection"]): r for r in zara1["table"]}
+    assert cell[(0, "partial")]["aoe"] == 0.6 and abs(cell[(0, "partial")]["aoe_std"] - 0.1) < 1e-12
+    assert zara1["best_n_partial"] == 4
+    assert abs(zara1["sparse_vs_full_connection_partial"]["aoe_pct"] - 100 * (0.6 - 0.4) / 0.6) < 1e-9
+    assert abs(zara1["partial_vs_fully_detected"]["4"]["aoe_pct"] - 100 * (0.5 - 0.4) / 0.5) < 1e-9
+    assert zara1["density"] >= 0
+    for draw, name in ((figures.partial_vs_full_detection, "a.png"),
+                       (figures.sparse_gain_against_density, "b.png"),
+                       (figures.best_n_per_dataset, "c.png")):
+        assert draw(all_results, tmp_path / name).stat().st_size > 5_000
