@@ -1,6 +1,7 @@
 """Figures (matplotlib, Agg backend) from results already computed; nothing here is jitted.
 
-Sweep figures in the spirit of the paper's Figs. 4-6: errors against n for one scene,
+Fig. 3 (a prediction with its sampled graphs), one agent's attention over time, training
+curves, and sweep figures in the spirit of the paper's Figs. 4-6: errors against n for one scene,
 improvement of partial over fully detected observation per dataset and n, improvement of
 the best sparse n over full connection against crowd density, and the best n per dataset.
 """
@@ -95,4 +96,117 @@ def best_n_per_dataset(all_results: Sequence[dict], path: Path) -> Path:
     ax.set_yscale("log", base=2)
     ax.set_ylabel("best n")
     ax.grid(axis="y", alpha=0.3)
+    return _save(fig, path)
+
+
+# --- Seeing one prediction (the paper's Fig. 3) ------------------------------------------
+
+def scene_prediction(observed, observed_mask, future, future_mask, samples, predicted_mask,
+                     fully_detected, adjacency_steps, step_labels, path: Path,
+                     title: str = "") -> Path:
+    """Trajectories (top), sampled graphs (middle) and adjacency matrices (bottom).
+
+    observed (T, N, 2) / observed_mask (T, N); future (P, N, 2) / future_mask (P, N);
+    samples (K, P, N, 2) predicted positions; predicted_mask, fully_detected (N,) bool;
+    adjacency_steps: one (adjacency (N, N+1) ghost last, positions (N, 2), velocities (N, 2),
+    present (N,) bool) per graph column, titled by step_labels.
+    """
+    columns = len(adjacency_steps)
+    fig = plt.figure(figsize=(3.2 * columns, 9.0))
+    grid = fig.add_gridspec(3, columns, height_ratios=[1.3, 1, 1])
+    ax = fig.add_subplot(grid[0, :])
+    num = observed.shape[1]
+    for i in range(num):
+        seen = observed_mask[:, i] > 0
+        ax.plot(observed[seen, i, 0], observed[seen, i, 1], "-", color="tab:blue", lw=1.2)
+        truth = future_mask[:, i] > 0
+        ax.plot(future[truth, i, 0], future[truth, i, 1], "-", color="tab:green", lw=1.2)
+        if predicted_mask[i]:
+            color = "tab:red" if fully_detected[i] else "tab:orange"
+            for sample in samples[:, :, i]:
+                ax.plot(sample[:, 0], sample[:, 1], "-", color=color, lw=0.5, alpha=0.2)
+            mean = samples[:, :, i].mean(axis=0)
+            ax.plot(mean[:, 0], mean[:, 1], "-", color=color, lw=2.0)
+    handles = [plt.Line2D([], [], color=c, label=label) for c, label in (
+        ("tab:blue", "observed"), ("tab:green", "ground truth"),
+        ("tab:red", "prediction (fully detected)"), ("tab:orange", "prediction (partial)"))]
+    ax.legend(handles=handles, fontsize=7, loc="best")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title, fontsize=8)
+    for c, ((adjacency, positions, velocities, present), label) in enumerate(
+            zip(adjacency_steps, step_labels)):
+        graph_ax = fig.add_subplot(grid[1, c])
+        graph_ax.scatter(positions[present, 0], positions[present, 1], s=12, color="black")
+        graph_ax.quiver(positions[present, 0], positions[present, 1], velocities[present, 0],
+                        velocities[present, 1], color="tab:gray", angles="xy",
+                        scale_units="xy", scale=0.5, width=0.004)
+        for target in range(num):
+            for neighbour in range(num):
+                if present[target] and adjacency[target, neighbour] > 0.5 and neighbour != target:
+                    graph_ax.annotate("", xy=positions[neighbour], xytext=positions[target],
+                                      arrowprops=dict(arrowstyle="->", color="tab:purple", lw=1))
+        graph_ax.set_aspect("equal", adjustable="datalim")
+        graph_ax.set_title(f"sampled graph, {label}", fontsize=8)
+        matrix_ax = fig.add_subplot(grid[2, c])
+        matrix_ax.imshow(adjacency[:num], cmap="Greys", vmin=0, vmax=1)
+        every = 1 if num <= 16 else 5
+        ticks = list(range(0, num, every))
+        matrix_ax.set_xticks(ticks + [num], [str(j) for j in ticks] + ["g"], fontsize=6)
+        matrix_ax.set_yticks(ticks, [str(i) for i in ticks], fontsize=6)
+        matrix_ax.set_xlabel("neighbour (g = ghost)", fontsize=7)
+        matrix_ax.set_ylabel("target", fontsize=7)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def attention_over_time(probabilities, present, agent: int, obs_len: int, path: Path,
+                        title: str = "", max_neighbours: int = 6) -> Path:
+    """One agent's selection probability of each neighbour and of the ghost per selector call.
+
+    probabilities (S, N+1) (ghost last); present (N,) bool: neighbours to draw.
+    """
+    fig, ax = plt.subplots(figsize=(6.0, 2.8))
+    steps = range(1, probabilities.shape[0] + 1)
+    candidates = [j for j in range(probabilities.shape[1] - 1) if present[j] and j != agent]
+    # The most attended neighbours get a line each; crowds would drown the legend.
+    shown = sorted(candidates, key=lambda j: -probabilities[:, j].max())[:max_neighbours]
+    for j in sorted(shown):
+        ax.plot(steps, probabilities[:, j], label=f"pedestrian {j}", lw=1.2)
+    rest = [j for j in candidates if j not in shown]
+    if rest:
+        ax.plot(steps, probabilities[:, rest].sum(axis=1), color="tab:gray", lw=1.0,
+                label=f"{len(rest)} others (sum)")
+    ax.plot(steps, probabilities[:, -1], "k--", label="ghost", lw=1.5)
+    ax.axvline(obs_len + 0.5, color="tab:gray", lw=0.8)
+    ax.text(obs_len + 0.7, 0.95, "prediction", fontsize=7, va="top")
+    ax.set_xlabel("selector call (0.4 s steps)")
+    ax.set_ylabel(f"attention of agent {agent}")
+    ax.set_ylim(0, 1.02)
+    ax.legend(fontsize=6, ncol=2)
+    ax.set_title(title, fontsize=8)
+    ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def training_curves(records: Sequence[dict], path: Path, title: str = "") -> Path:
+    """Loss per epoch, and validation AOE/FOE where the run recorded them."""
+    validated = [r for r in records if "val_aoe" in r]
+    fig, axes = plt.subplots(1, 2 if validated else 1, figsize=(7.0 if validated else 3.6, 2.8),
+                             squeeze=False)
+    axes[0, 0].plot([r["epoch"] for r in records], [r["loss"] for r in records])
+    axes[0, 0].set_xlabel("epoch")
+    axes[0, 0].set_ylabel("training loss")
+    axes[0, 0].grid(alpha=0.3)
+    if validated:
+        epochs = [r["epoch"] for r in validated]
+        axes[0, 1].plot(epochs, [r["val_aoe"] for r in validated], "o-", label="AOE")
+        axes[0, 1].plot(epochs, [r["val_foe"] for r in validated], "s-", label="FOE")
+        axes[0, 1].set_xlabel("epoch")
+        axes[0, 1].set_ylabel("validation error (m)")
+        axes[0, 1].legend(fontsize=7)
+        axes[0, 1].grid(alpha=0.3)
+    fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
     return _save(fig, path)
