@@ -1,0 +1,59 @@
+"""Closed-loop simulation: scenarios, kinematics (constant-velocity model), detectors."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from gst_jax import simulate
+from gst_jax.config import ModelConfig
+from gst_jax.model import Controls, init_params
+
+
+@pytest.mark.parametrize("name", list(simulate.SCENARIOS))
+def test_scenarios_build_valid_initial_states(name):
+    scenario = simulate.SCENARIOS[name]()
+    agents = scenario.start.shape[0]
+    assert scenario.start.shape == scenario.velocity.shape == (agents, 2) and agents >= 2
+    assert scenario.detected_from.shape == (agents,) and scenario.detected_from[0] == 0
+    assert np.all(scenario.detected_from >= 0) and np.all(np.isfinite(scenario.start))
+    assert np.linalg.norm(scenario.goal - scenario.start[0]) > 1.0
+    gaps = np.linalg.norm(scenario.start[:, None] - scenario.start[None], axis=-1)
+    assert gaps[~np.eye(agents, dtype=bool)].min() > simulate.COLLISION_DISTANCE
+
+
+def test_constant_velocity_model_moves_every_agent_in_a_straight_line():
+    scenario = simulate.intersection()
+    positions = np.asarray(simulate.simulate(simulate.constant_velocity_model, scenario,
+                                             jax.random.key(0)))
+    steps = np.arange(scenario.steps + 1)[:, None, None]
+    expected = scenario.start[None] + scenario.velocity[None] * simulate.DT * steps
+    np.testing.assert_allclose(positions, expected, atol=1e-4)
+    result = simulate.measures(positions, scenario)
+    assert not result["freezing_or_u_turn"] and abs(result["path_length_ratio"] - 1) < 1e-4
+
+
+def test_u_turn_and_freezing_detectors():
+    goal = np.array([10.0, 0.0])
+    straight = np.stack([np.linspace(0, 10, 26), np.zeros(26)], -1)
+    assert not simulate.freezing_or_u_turn(straight, goal)["freezing_or_u_turn"]
+    out_and_back = np.concatenate([straight[:10], straight[9::-1]])
+    assert simulate.freezing_or_u_turn(out_and_back, goal)["u_turn"]
+    stop = np.concatenate([straight[:5], np.repeat(straight[5:6], 8, axis=0), straight[5:]])
+    detected = simulate.freezing_or_u_turn(stop, goal)
+    assert detected["frozen"] and not detected["u_turn"]
+
+
+def test_gst_drives_the_loop_without_nan():
+    config = ModelConfig()
+    params = init_params(config, jax.random.key(0))
+    model = simulate.gst_model(params, config, Controls.make(0.03, 1, True))
+    scenario = dataclasses.replace(simulate.late_crossing(), steps=6)
+    positions = np.asarray(simulate.simulate(model, scenario, jax.random.key(1)))
+    assert positions.shape == (7, 2, 2) and np.all(np.isfinite(positions))
+    # The undetected human walks its script until detection (step 4).
+    np.testing.assert_allclose(positions[:5, 1], scenario.start[1] + scenario.velocity[1]
+                               * simulate.DT * np.arange(5)[:, None], atol=1e-5)
