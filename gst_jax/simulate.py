@@ -44,12 +44,12 @@ class Scenario:
     velocity: np.ndarray
     detected_from: np.ndarray
     goal: np.ndarray
-    steps: int = 30
+    steps: int = 25
 
 
 def late_crossing(delay_s: float = 1.6, speed: float = 1.2) -> Scenario:
     """(a) A human enters the robot's field of view `delay_s` late, walking into its path."""
-    start = np.array([[0.0, 0.0], [6.0, -4.0]])
+    start = np.array([[0.0, 0.0], [6.0, -6.0]])       # both reach (6, 0) after 5 s
     velocity = np.array([[speed, 0.0], [0.0, speed]])
     return Scenario("a_late_crossing", start, velocity,
                     np.array([0, round(delay_s / DT)]), np.array([12.0, 0.0]))
@@ -152,16 +152,19 @@ def measures(positions: np.ndarray, scenario: Scenario) -> dict:
     distances = np.linalg.norm(humans - robot[:, None], axis=-1)              # (S+1, H)
     goal = np.asarray(scenario.goal, float)
     to_goal = np.linalg.norm(goal - robot, axis=-1)
-    steps = np.diff(robot, axis=0)
+    # The predictor knows no goal, so the robot walks on past it: judge it up to its closest
+    # approach to the goal.
+    arrival = int(np.argmin(to_goal))
+    steps = np.diff(robot[:arrival + 1], axis=0)
     path_length = float(np.linalg.norm(steps, axis=-1).sum())
-    straight = float(np.linalg.norm(robot[-1] - robot[0]))
+    straight = float(np.linalg.norm(robot[arrival] - robot[0]))
     return {
         "min_distance_m": float(distances.min()) if distances.size else float("inf"),
         "collision_steps": int(np.sum(distances.min(axis=1) < COLLISION_DISTANCE))
         if distances.size else 0,
-        "progress": float((to_goal[0] - to_goal[-1]) / to_goal[0]),
+        "progress": float((to_goal[0] - to_goal[arrival]) / to_goal[0]),
         "path_length_ratio": path_length / straight if straight > 1e-6 else float("inf"),
-        **freezing_or_u_turn(robot, goal),
+        **freezing_or_u_turn(robot[:arrival + 1], goal),
     }
 
 
@@ -170,6 +173,8 @@ def freezing_or_u_turn(robot: np.ndarray, goal: np.ndarray, *, reverse_deg: floa
     """U-turn: the robot's heading turns by more than `reverse_deg` from its initial heading.
     Freezing: progress toward the goal below `stall_speed` m/s for more than `stall_s`."""
     steps = np.diff(robot, axis=0)
+    if not len(steps):
+        return {"u_turn": False, "frozen": False, "freezing_or_u_turn": False}
     moving = np.linalg.norm(steps, axis=-1) > 1e-6
     headings = np.arctan2(steps[:, 1], steps[:, 0])
     initial = headings[np.argmax(moving)] if moving.any() else 0.0
