@@ -58,37 +58,33 @@ def main() -> None:
     key = jax.random.key(0)
     rows = []
 
-    start = time.perf_counter()
-    compile_s, run_s = timed_steps(
+    def way(name, run):
+        start = time.perf_counter()
+        compile_s, run_s = run()
+        rows.append(dict(way=name, compile_s=compile_s, run_s=run_s,
+                         total_s=time.perf_counter() - start))
+
+    def one_after_another(config_of, step_of):
+        """Every member alone: its config, its (possibly shared) jitted step."""
+        compile_s = run_s = 0.0
+        for member in members:
+            alone = config_of(member)
+            c, r = timed_steps(step_of(alone), train.create_train_state(alone, key), batches,
+                               lambda i: jax.random.fold_in(key, i),
+                               train.hparams_for_epoch(alone, train_config, 1))
+            compile_s, run_s = compile_s + c, run_s + r
+        return compile_s, run_s
+
+    way("vmapped", lambda: timed_steps(
         sweep.make_sweep_step(config), sweep.initial_states(config, members), batches,
         lambda i: jax.random.split(jax.random.fold_in(key, i), len(members)),
-        sweep.member_hparams(config, train_config, members, 1))
-    rows.append(dict(way="vmapped", compile_s=compile_s, run_s=run_s,
-                     total_s=time.perf_counter() - start))
-
-    start = time.perf_counter()
+        sweep.member_hparams(config, train_config, members, 1)))
     shared_step = jax.jit(train.make_train_step(config), donate_argnums=0)
-    compile_s = run_s = 0.0
-    for member in members:
-        alone = sweep.member_config(config, member)
-        c, r = timed_steps(shared_step, train.create_train_state(alone, key), batches,
-                           lambda i: jax.random.fold_in(key, i),
-                           train.hparams_for_epoch(alone, train_config, 1))
-        compile_s, run_s = compile_s + c, run_s + r
-    rows.append(dict(way="sequential", compile_s=compile_s, run_s=run_s,
-                     total_s=time.perf_counter() - start))
-
-    start = time.perf_counter()
-    compile_s = run_s = 0.0
-    for member in members:
-        alone = ModelConfig(num_edge_heads=member.edge_heads)          # head slots max(n, 1)
-        step = jax.jit(train.make_train_step(alone), donate_argnums=0)
-        c, r = timed_steps(step, train.create_train_state(alone, key), batches,
-                           lambda i: jax.random.fold_in(key, i),
-                           train.hparams_for_epoch(alone, train_config, 1))
-        compile_s, run_s = compile_s + c, run_s + r
-    rows.append(dict(way="separate", compile_s=compile_s, run_s=run_s,
-                     total_s=time.perf_counter() - start))
+    way("sequential", lambda: one_after_another(
+        lambda m: sweep.member_config(config, m), lambda alone: shared_step))
+    way("separate", lambda: one_after_another(                      # head slots max(n, 1)
+        lambda m: ModelConfig(num_edge_heads=m.edge_heads),
+        lambda alone: jax.jit(train.make_train_step(alone), donate_argnums=0)))
 
     for row in rows:
         row.update(record("sweep", scene=args.scene, members=len(members), steps=args.steps,

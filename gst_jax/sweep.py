@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gst_jax import data, evaluate
+from gst_jax import data, evaluate, train
 from gst_jax.checkpoints import Checkpointer
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.model import Controls
@@ -114,19 +114,10 @@ def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainC
     """Train (or resume) every member in `workdir`, evaluate each on the test split, and write
     results.{json,csv,md} and figures. Returns the results dict."""
     workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
-    run_config = {"model": dataclasses.asdict(config), "data": dataclasses.asdict(data_config),
-                  "train": dataclasses.asdict(train_config),
+    run_config = {**train.run_config(config, data_config, train_config),
                   "members": [dataclasses.asdict(m) for m in members]}
-    config_path = workdir / "config.json"
-    if config_path.exists() and json.loads(config_path.read_text()) != run_config:
-        raise SystemExit(f"{workdir} holds a different sweep ({config_path}); choose another "
-                         "--workdir or delete it.")
-    config_path.write_text(json.dumps(run_config, indent=2) + "\n")
-
-    train_set = data.load_split(data_config, "train")
-    if train_config.max_train_windows:
-        train_set = train_set.subset(range(min(train_config.max_train_windows, len(train_set))))
+    train.prepare_workdir(workdir, run_config)
+    train_set = train.load_train_set(data_config, train_config)
     state = initial_states(config, members)
     checkpointer = Checkpointer(workdir)
     start_epoch = 1

@@ -19,7 +19,7 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import flax
 import jax
@@ -33,6 +33,7 @@ from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.data import SceneBatch
 from gst_jax.graph import drop_partially_detected
 from gst_jax.model import init_params
+from gst_jax.predict import make_predict
 
 
 @flax.struct.dataclass
@@ -142,7 +143,15 @@ def run_config(model_config: ModelConfig, data_config: DataConfig,
             "train": dataclasses.asdict(train_config)}
 
 
-def _prepare_workdir(workdir: Path, config: dict) -> None:
+def load_train_set(data_config: DataConfig, train_config: TrainConfig):
+    """The training windows, cut to the first `max_train_windows` when set (smoke tests)."""
+    train_set = data.load_split(data_config, "train")
+    if train_config.max_train_windows:
+        train_set = train_set.subset(range(min(train_config.max_train_windows, len(train_set))))
+    return train_set
+
+
+def prepare_workdir(workdir: Path, config: dict) -> None:
     """Create the work dir, or check that an existing one belongs to the same run."""
     workdir.mkdir(parents=True, exist_ok=True)
     config_path = workdir / "config.json"
@@ -197,14 +206,14 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     workdir = Path(workdir)
     progress = progress or _Progress()
     config = run_config(model_config, data_config, train_config)
-    _prepare_workdir(workdir, config)
+    prepare_workdir(workdir, config)
     metrics_path = workdir / "metrics.jsonl"
 
-    train_set = data.load_split(data_config, "train")
-    if train_config.max_train_windows:
-        train_set = train_set.subset(range(min(train_config.max_train_windows, len(train_set))))
+    train_set = load_train_set(data_config, train_config)
     has_val = data_config.protocol in ("paper-val", "loo")
     val_set = data.load_split(data_config, "val") if has_val else None
+    # Built once: a fresh `make_predict` per validation would recompile every time.
+    val_predict = make_predict(model_config, num_samples=1, with_graph=False) if has_val else None
 
     checkpointer = Checkpointer(workdir)
     base_key = jax.random.key(train_config.seed)
@@ -259,7 +268,8 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
                 epoch % train_config.eval_every == 0 or epoch == train_config.epochs):
             val = evaluate.evaluate_params(
                 state.params, model_config, val_set, jax.random.fold_in(base_key, -epoch),
-                num_samples=1, fully_detected_only=train_config.fully_detected_only)
+                num_samples=1, fully_detected_only=train_config.fully_detected_only,
+                predict=val_predict)
             record.update(val_aoe=val["aoe"], val_foe=val["foe"])
         if epoch % train_config.checkpoint_every == 0 or epoch == train_config.epochs:
             checkpointer.save(epoch, state, config)

@@ -99,7 +99,8 @@ class EdgeSelector(nn.Module):
         """Sample the interaction graph of one or more time steps.
 
         node_embedding: (..., N, d) phi_v(v); edge_features: (..., N, N, 2) A indexed [j, i];
-        edge_embedding: phi_e's (kernel, bias); adjacency: (..., N, N) a_ij; noise: (..., N, G, N+1) Gumbel noise.
+        edge_embedding: phi_e's (kernel, bias); adjacency: (..., N, N) a_ij;
+        noise: (..., N, G, N+1) Gumbel noise.
         Returns edge_probs and sampled_edges, both (..., N, G, N+1) (target, head slot,
         neighbour; ghost last; inactive head slots zero), and the sampled adjacency
         (..., N, N+1) = sum over heads.

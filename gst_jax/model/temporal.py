@@ -46,4 +46,3 @@ class TemporalConvReadout(nn.Module):
         x = jnp.moveaxis(x, -1, 1)                                   # (B, P, N, d)
         x = drop(jax.nn.relu(torch_dense(self.hidden, channels, "linear_1")(x)))
         return torch_dense(self.features_out, self.hidden, "linear_2")(x)
-

@@ -69,6 +69,7 @@ def check_aoe(config: ModelConfig, params, data_config) -> float:
 def export(run_path: str, name: str) -> Path:
     """Copy a trained run's latest parameters and its evaluation into the package."""
     from gst_jax.evaluate import load_run
+    from gst_jax.train import run_config
 
     run = load_run(run_path)
     evaluations = sorted((run.workdir / "eval").glob("*-test-e*.json"))
@@ -79,8 +80,7 @@ def export(run_path: str, name: str) -> Path:
     folder.mkdir(parents=True)
     with ocp.StandardCheckpointer() as checkpointer:
         checkpointer.save((folder / "params").absolute(), run.params)
-    meta = {"model": {k: v for k, v in run.model_config.__dict__.items()},
-            "data": run.data_config.__dict__, "train": run.train_config.__dict__,
+    meta = {**run_config(run.model_config, run.data_config, run.train_config),
             "epoch": run.epoch, "source": str(run.workdir), "test_metrics": metrics,
             "check": {**CHECK, "aoe": check_aoe(run.model_config, run.params, run.data_config)}}
     (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
