@@ -41,6 +41,8 @@ def evaluate_params(params, model_config: ModelConfig, window_set, key: jax.Arra
     with_graph=False)` to reuse across calls (one compile per bucket for many members).
     """
     predict = predict or make_predict(model_config, num_samples=num_samples, with_graph=False)
+    # scipy's 2-D KDE needs more samples than dimensions; with K <= 2 there is no KDE NLL.
+    with_kde = with_kde and num_samples > 2
     obs_len = model_config.obs_len
     totals: dict[str, Any] = {}
 

@@ -217,6 +217,8 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
 
     checkpointer = Checkpointer(workdir)
     base_key = jax.random.key(train_config.seed)
+    # A key stream of its own (fold_in takes uint32 data, so no negative epochs).
+    validation_key = jax.random.fold_in(base_key, 2 ** 32 - 1)
     state = create_train_state(model_config, jax.random.fold_in(base_key, 0))
     start_epoch = 1
     if checkpointer.latest_epoch is not None:
@@ -267,7 +269,7 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
         if val_set is not None and train_config.eval_every and (
                 epoch % train_config.eval_every == 0 or epoch == train_config.epochs):
             val = evaluate.evaluate_params(
-                state.params, model_config, val_set, jax.random.fold_in(base_key, -epoch),
+                state.params, model_config, val_set, jax.random.fold_in(validation_key, epoch),
                 num_samples=1, fully_detected_only=train_config.fully_detected_only,
                 predict=val_predict)
             record.update(val_aoe=val["aoe"], val_foe=val["foe"])

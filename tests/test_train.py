@@ -120,3 +120,13 @@ def test_resume_after_sigkill_matches_uninterrupted_run_and_evaluates(tmp_path):
         assert np.isfinite(result[name]), name
     assert result["min_ade"] <= result["aoe"]
     assert list((tmp_path / "straight" / "eval").glob("*.json"))
+
+
+def test_validation_split_is_evaluated_during_training(tmp_path):
+    config = TrainConfig(epochs=2, batch_size=4, max_train_windows=4, eval_every=1,
+                         checkpoint_every=2)
+    train.fit(MODEL, DataConfig(scene="hotel", protocol="paper-val"), config, tmp_path / "run")
+    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text()
+               .splitlines()]
+    assert [r["epoch"] for r in records] == [1, 2]
+    assert all(r["val_aoe"] > 0 and r["val_foe"] >= r["val_aoe"] * 0.5 for r in records)
