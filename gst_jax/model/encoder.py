@@ -8,7 +8,7 @@ import jax.numpy as jnp
 
 from gst_jax.config import ModelConfig
 from gst_jax.graph import float_mask_attention_weights
-from gst_jax.model.layers import layer_norm, torch_dense
+from gst_jax.model.layers import Dropout, layer_norm, torch_dense
 
 
 class NodeEncoderLayer(nn.Module):
@@ -25,7 +25,7 @@ class NodeEncoderLayer(nn.Module):
         self.out_proj = nn.Dense(d, kernel_init=nn.initializers.xavier_uniform())
         self.linear1 = torch_dense(self.config.encoder_ff_dim, d)
         self.linear2 = torch_dense(d, self.config.encoder_ff_dim)
-        self.dropout = nn.Dropout(self.config.dropout)
+        self.dropout = Dropout(self.config.dropout)
 
     def __call__(self, x: jax.Array, node_valid: jax.Array, sampled_adjacency: jax.Array, *,
                  deterministic: bool) -> tuple[jax.Array, jax.Array]:

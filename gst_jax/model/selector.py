@@ -23,7 +23,7 @@ from gst_jax.config import ModelConfig
 from gst_jax.graph import float_mask_attention_weights, masked_categorical, EPS
 from gst_jax.gumbel import gumbel_softmax
 from gst_jax.model.controls import Controls
-from gst_jax.model.layers import LayerNormParams, layer_norm, torch_uniform
+from gst_jax.model.layers import Dropout, LayerNormParams, layer_norm, torch_uniform
 
 
 def group_to_head(num_groups: int, num_edge_heads: jax.Array) -> jax.Array:
@@ -66,14 +66,15 @@ class EdgeSelector(nn.Module):
         self.mlp_hidden_bias = self.param("mlp_hidden_bias", torch_uniform(head_dim), (width,))
         self.mlp_out_kernel = self.param("mlp_out_kernel", torch_uniform(head_dim), (width,))
         self.mlp_out_bias = self.param("mlp_out_bias", torch_uniform(head_dim), ())
-        self.dropout = nn.Dropout(config.dropout)
+        self.dropout = Dropout(config.dropout)
 
-    def project_edges(self, edge_features: jax.Array, edge_embedding: tuple[jax.Array, jax.Array],
-                      adjacency: jax.Array) -> jax.Array:
-        """(a_ij LayerNorm(phi_e(A[j, i]))) W_c per target i and neighbour j, ghost column zero.
+    def edge_coefficients(self, edge_features: jax.Array, edge_embedding: tuple[jax.Array, jax.Array],
+                          adjacency: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """a_ij LayerNorm(phi_e(A[j, i])) W_c per target i and neighbour j, as c_ij @ basis.
 
         edge_features (..., N, N, 2) indexed [j, i]; edge_embedding: phi_e's (kernel (2, d_e),
-        bias (d_e,)); adjacency (..., N, N). Returns (..., N, N+1, 3W) indexed [i, j].
+        bias (d_e,)); adjacency (..., N, N). Returns the coefficients c (..., N, N+1, 4) indexed
+        [i, j] (ghost column zero) and the basis (4, 3W).
         """
         kernel, bias = edge_embedding
         scale, shift = self.norm_edge()
@@ -86,12 +87,16 @@ class EdgeSelector(nn.Module):
         offset = centred_bias @ centred_bias / kernel.shape[-1]
         a = jnp.swapaxes(edge_features, -2, -3)                                  # [i, j]
         variance = (jnp.einsum("...p,pq,...q->...", a, gram, a) + 2 * a @ cross + offset)
-        inv_std = jax.lax.rsqrt(jnp.maximum(variance, 0.0) + 1e-5)               # (..., N, N)
-        slope = centred_kernel @ (scale[:, None] * edge_kernel)                  # (2, 3W)
-        intercept = (centred_bias * scale) @ edge_kernel
-        projected = (a @ slope + intercept) * inv_std[..., None] + shift @ edge_kernel
-        projected = projected * jnp.swapaxes(adjacency, -1, -2)[..., None]
-        return jnp.concatenate([projected, jnp.zeros_like(projected[..., :1, :])], axis=-2)
+        valid = jnp.swapaxes(adjacency, -1, -2)
+        scaled = jax.lax.rsqrt(jnp.maximum(variance, 0.0) + 1e-5) * valid        # (..., N, N)
+        coefficients = jnp.stack([a[..., 0] * scaled, a[..., 1] * scaled, scaled, valid], -1)
+        coefficients = jnp.concatenate([coefficients, jnp.zeros_like(coefficients[..., :1, :])],
+                                       axis=-2)
+        basis = jnp.stack([centred_kernel[0] * scale @ edge_kernel,
+                           centred_kernel[1] * scale @ edge_kernel,
+                           (centred_bias * scale) @ edge_kernel,
+                           shift @ edge_kernel])
+        return coefficients, basis
 
     def __call__(self, node_embedding: jax.Array, edge_features: jax.Array,
                  edge_embedding: tuple[jax.Array, jax.Array], adjacency: jax.Array,
@@ -120,32 +125,61 @@ class EdgeSelector(nn.Module):
         valid_edges = jnp.concatenate(                                          # a'_ij (..., N, L)
             [jnp.swapaxes(adjacency, -1, -2), ghost_column[..., None]], axis=-1)
 
-        # [x_j | x_i | e_ji] W = x_j W_a + x_i W_b + e_ji W_c: per-node parts once per node.
+        # [x_j | x_i | e_ji] W = x_j W_a + (x_i W_b + bias) + c_ij @ basis: a per-neighbour
+        # part P_j, and per target i an affine combination of R = 5 vectors B_i with the edge
+        # coefficients c~_ij = (1, c_ij). Scores and values are contracted through these
+        # parts, so no per-edge q/k/v is ever formed.
         kernel = self.in_proj_kernel
         from_neighbour = x_nb @ kernel[:d]                                       # (..., L, 3W)
-        from_target = x @ kernel[d:2 * d]                                        # (..., N, 3W)
-        from_edge = self.project_edges(edge_features, edge_embedding, adjacency)  # (..., N, L, 3W)
-        qkv = from_edge + from_neighbour[..., None, :, :] + from_target[..., :, None, :]
-        qkv = qkv + self.in_proj_bias
-        shape = qkv.shape[:-1] + (num_groups, width // num_groups)
-        q, k, v = (part.reshape(shape) for part in jnp.split(qkv, 3, axis=-1))  # (..., N, L, G, w)
+        from_target = x @ kernel[d:2 * d] + self.in_proj_bias                    # (..., N, 3W)
+        edge_coefficients, edge_basis = self.edge_coefficients(edge_features, edge_embedding,
+                                                               adjacency)
+        c = jnp.concatenate([jnp.ones_like(edge_coefficients[..., :1]), edge_coefficients],
+                            axis=-1)                                             # (..., N, L, R)
+        basis = jnp.concatenate([from_target[..., None, :], jnp.broadcast_to(
+            edge_basis, from_target.shape[:-1] + edge_basis.shape)], axis=-2)  # (..., N, R, 3W)
+        # The MLP's first layer is linear in the attention output, so it is applied to the
+        # values' parts before they are mixed (block-diagonal: each head's own weight).
+        mlp_hidden = block_diagonal(self.mlp_hidden_kernel, head_dim)
+        node_part = jnp.concatenate([from_neighbour[..., :2 * width],
+                                     from_neighbour[..., 2 * width:] @ mlp_hidden], axis=-1)
+        basis = jnp.concatenate([basis[..., :2 * width], basis[..., 2 * width:] @ mlp_hidden],
+                                axis=-1)
+
+        def grouped(t):  # (..., 3W) -> q, k, v parts, each (..., G, W/G)
+            t = t.reshape(t.shape[:-1] + (3, num_groups, width // num_groups))
+            return t[..., 0, :, :], t[..., 1, :, :], t[..., 2, :, :]
+
+        pq, pk, pv = grouped(node_part)                                          # (..., L, G, w)
+        bq, bk, bv = grouped(basis)                                              # (..., N, R, G, w)
+        # q_il . k_im = P_l.P_m + c~_im.(B_i.P_l) + c~_il.(B_i.P_m) + c~_il (B_i.B_i) c~_im
+        pq_bk = jnp.einsum("...lgc,...isgc->...igls", pq, bk)
+        bq_pk = jnp.einsum("...irgc,...mgc->...igrm", bq, pk)
+        bq_bk = jnp.einsum("...irgc,...isgc->...igrs", bq, bk)
+        by_target = pq_bk + jnp.einsum("...ilr,...igrs->...igls", c, bq_bk)
+        group_scores = (jnp.einsum("...lgc,...mgc->...glm", pq, pk)[..., None, :, :, :]
+                        + jnp.einsum("...igls,...ims->...iglm", by_target, c)
+                        + jnp.einsum("...ilr,...igrm->...iglm", c, bq_pk))  # (..., N, G, L, L)
 
         heads = group_to_head(num_groups, n)                                     # (G, G)
-        group_scores = jnp.einsum("...lgc,...mgc->...glm", q, k)
         scores = jnp.einsum("...glm,gh->...hlm", group_scores, heads) / jnp.sqrt(
-            head_dim.astype(q.dtype))
+            head_dim.astype(x.dtype))
         edge_pair_mask = valid_edges[..., None, :, None] * valid_edges[..., None, None, :]
         weights = float_mask_attention_weights(scores, edge_pair_mask)           # (..., N, H, L, L)
         group_weights = jnp.einsum("...hlm,gh->...glm", weights, heads)
-        head_outputs = jnp.einsum("...glm,...mgc->...lgc", group_weights, v)
-        head_outputs = head_outputs.reshape(head_outputs.shape[:-2] + (width,))  # (..., N, L, W)
+        mixed_coefficients = jnp.einsum("...glm,...ms->...gls", group_weights, c)
+        hidden = (jnp.einsum("...glm,...mgc->...lgc", group_weights, pv[..., None, :, :, :])
+                  + jnp.einsum("...gls,...sgc->...lgc", mixed_coefficients, bv))
+        hidden = hidden.reshape(hidden.shape[:-2] + (width,))                    # (..., N, L, W)
 
         within = jnp.arange(width) % head_dim
-        hidden = nn.relu(head_outputs @ block_diagonal(self.mlp_hidden_kernel, head_dim)
-                         + self.mlp_hidden_bias[within])
+        hidden = nn.relu(hidden + self.mlp_hidden_bias[within])
         hidden = self.dropout(hidden, deterministic=deterministic)
-        contributions = (hidden * self.mlp_out_kernel[within]).reshape(
-            hidden.shape[:-1] + (num_groups, width // num_groups)).sum(-1)       # (..., N, L, G)
+        # The MLP's output layer, per group: a (W, G) matrix, so that this is one dot.
+        channel_group = jnp.arange(width) // (width // num_groups)
+        output_by_group = jnp.where(channel_group[:, None] == jnp.arange(num_groups),
+                                    self.mlp_out_kernel[within][:, None], 0.0)
+        contributions = hidden @ output_by_group                                 # (..., N, L, G)
         logits = jnp.einsum("...lg,gh->...hl", contributions, heads) + self.mlp_out_bias
 
         active_heads = (jnp.arange(num_groups) < n).astype(x.dtype)              # (H,)
