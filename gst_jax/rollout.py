@@ -24,7 +24,8 @@ from gst_jax.data import SceneBatch
 from gst_jax.gumbel import sample_gumbel
 from gst_jax.model import GST, Controls
 
-__all__ = ["Controls", "RolloutNoise", "RolloutOutput", "rollout", "rollout_with_noise"]
+__all__ = ["Controls", "RolloutNoise", "RolloutOutput", "observed_edge_probabilities", "rollout",
+           "rollout_with_noise"]
 
 
 @flax.struct.dataclass
@@ -65,10 +66,31 @@ class RolloutOutput:
 
 
 def rollout(params, config: ModelConfig, batch: SceneBatch, key: jax.Array, controls: Controls,
-            *, hard: bool, deterministic: bool, return_attention: bool = False) -> RolloutOutput:
-    """Predict `config.pred_len` steps for every pedestrian of `batch`, drawing noise from `key`."""
+            *, hard: bool, deterministic: bool, return_attention: bool = False,
+            observed_edge_probs: jax.Array | None = None) -> RolloutOutput:
+    """Predict `config.pred_len` steps for every pedestrian of `batch`, drawing noise from `key`.
+
+    `observed_edge_probs` (from `observed_edge_probabilities`, deterministic rollouts only)
+    skips the observation pass's edge selector, so that samples share it.
+    """
     return _rollout(params, config, batch, controls, key, None, hard=hard,
-                    deterministic=deterministic, return_attention=return_attention)
+                    deterministic=deterministic, return_attention=return_attention,
+                    observed_edge_probs=observed_edge_probs)
+
+
+def observed_edge_probabilities(params, config: ModelConfig, batch: SceneBatch,
+                                controls: Controls) -> jax.Array:
+    """Edge probabilities of the observed steps without dropout, (B, T_obs, N, G, N+1).
+
+    They depend on the observations only, not on the noise: K samples of one batch need them
+    once (8 of the 19 selector calls of a rollout).
+    """
+    node_mask = batch.node_mask[:, :config.obs_len]
+    positions = batch.positions[:, :config.obs_len]
+    return GST(config).apply(
+        {"params": params}, graph.displacements(positions, node_mask),
+        graph.edge_features(positions, node_mask), node_mask, controls, deterministic=True,
+        method=GST.select)
 
 
 def rollout_with_noise(params, config: ModelConfig, batch: SceneBatch, noise: RolloutNoise,
@@ -92,7 +114,8 @@ def sample_displacement(mu: jax.Array, sigma: jax.Array, corr: jax.Array,
 
 def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
              key: jax.Array, recorded: RolloutNoise | None, *, hard: bool, deterministic: bool,
-             return_attention: bool) -> RolloutOutput:
+             return_attention: bool, observed_edge_probs: jax.Array | None = None
+             ) -> RolloutOutput:
     model = GST(config)
     obs_len, pred_len = config.obs_len, config.pred_len
     batch_size, _, num_nodes = batch.node_mask.shape
@@ -119,7 +142,7 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
         gumbel_obs = recorded.gumbel_obs
     encoded, obs_probs, obs_sampled, obs_attention = apply(
         GST.interact, node_features, edge_features, node_mask, gumbel_obs, controls,
-        hard=hard, deterministic=deterministic, key=dropout_key)
+        hard=hard, deterministic=deterministic, key=dropout_key, edge_probs=observed_edge_probs)
     keep = graph.keep_mask(batch.node_mask, obs_len)                            # (B, N)
     if recorded is None:
         key, normal_key = jax.random.split(key)

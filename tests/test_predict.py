@@ -7,6 +7,9 @@ import jax
 import numpy as np
 
 import gst_jax
+from gst_jax.model import Controls
+from gst_jax.predict import EVAL_TAU
+from gst_jax.rollout import rollout
 
 CONFIG = gst_jax.ModelConfig()
 K = 3
@@ -41,6 +44,22 @@ def test_predict_from_nan_marked_observations():
     np.testing.assert_allclose(np.asarray(prediction.sampled_adjacency)[:, 0, 8:, 1:5].sum(-1), 1.0)
     # K samples are different draws of the graph.
     assert not np.array_equal(prediction.sampled_adjacency[0], prediction.sampled_adjacency[1])
+
+
+def test_samples_share_the_observation_pass_without_changing_them():
+    """predict computes the observed edge probabilities once; each sample equals a rollout
+    that computes them itself."""
+    config = gst_jax.ModelConfig(output="gaussian")
+    params = gst_jax.init_params(config, jax.random.key(0))
+    batch = gst_jax.make_batch(observations(6))
+    key = jax.random.key(3)
+    prediction = gst_jax.make_predict(config, num_samples=K)(params, key, batch)
+    controls = Controls.make(EVAL_TAU, config.num_edge_heads, config.ghost)
+    for k, sample_key in enumerate(jax.random.split(key, K)):
+        alone = rollout(params, config, batch, sample_key, controls, hard=True,
+                        deterministic=True)
+        np.testing.assert_allclose(prediction.displacements[k], alone.displacements, atol=1e-5)
+        np.testing.assert_allclose(prediction.edge_probs[k], alone.edge_probs, atol=1e-6)
 
 
 def test_predict_compiles_once_per_bucket():

@@ -15,7 +15,7 @@ from gst_jax.model.controls import Controls
 from gst_jax.model.encoder import NodeEncoderLayer
 from gst_jax.model.layers import DenseParams, torch_dense
 from gst_jax.model.recurrent import MaskedLSTMCell
-from gst_jax.model.selector import EdgeSelector
+from gst_jax.model.selector import EdgeSelector, sample_edges
 from gst_jax.model.temporal import TemporalConvReadout
 
 
@@ -37,19 +37,30 @@ class GST(nn.Module):
         else:
             self.tcn = TemporalConvReadout(config.obs_len, config.pred_len, dropout=config.dropout)
 
+    def select(self, node_features: jax.Array, edge_features: jax.Array, node_mask: jax.Array,
+               controls: Controls, *, deterministic: bool) -> jax.Array:
+        """The edge selector's probabilities (..., N, G, N+1); inputs as for `interact`."""
+        return self.edge_selector(self.node_embedding(node_features), edge_features,
+                                  self.edge_embedding(), adjacency(node_mask), controls,
+                                  deterministic=deterministic)
+
     def interact(self, node_features: jax.Array, edge_features: jax.Array, node_mask: jax.Array,
-                 noise: jax.Array, controls: Controls, *, hard: bool, deterministic: bool):
+                 noise: jax.Array, controls: Controls, *, hard: bool, deterministic: bool,
+                 edge_probs: jax.Array | None = None):
         """Sample the graph and encode every pedestrian's neighbourhood.
 
         node_features (..., N, 2), edge_features (..., N, N, 2) [j, i], node_mask (..., N),
-        noise (..., N, G, N+1). Returns encoded nodes (..., N, d), edge_probs and
-        sampled_edges (..., N, G, N+1), and attention weights (layers, ..., 8, N, N+1).
+        noise (..., N, G, N+1); edge_probs, if given, are `select`'s output for these inputs
+        (shared between samples that differ only in their noise). Returns encoded nodes
+        (..., N, d), edge_probs and sampled_edges (..., N, G, N+1), and attention weights
+        (layers, ..., 8, N, N+1).
         """
         edges = adjacency(node_mask)
         node_embedding = self.node_embedding(node_features)
-        edge_probs, sampled_edges, sampled_adjacency = self.edge_selector(
-            node_embedding, edge_features, self.edge_embedding(), edges, noise, controls, hard=hard,
-            deterministic=deterministic)
+        if edge_probs is None:
+            edge_probs = self.edge_selector(node_embedding, edge_features, self.edge_embedding(),
+                                            edges, controls, deterministic=deterministic)
+        sampled_edges, sampled_adjacency = sample_edges(edge_probs, noise, controls, hard=hard)
         # Full connection (n = 0): the observed adjacency itself, no ghost.
         full = jnp.concatenate([edges, jnp.zeros_like(edges[..., :1])], axis=-1)
         full_connection = controls.num_edge_heads == 0

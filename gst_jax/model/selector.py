@@ -100,15 +100,13 @@ class EdgeSelector(nn.Module):
 
     def __call__(self, node_embedding: jax.Array, edge_features: jax.Array,
                  edge_embedding: tuple[jax.Array, jax.Array], adjacency: jax.Array,
-                 noise: jax.Array, controls: Controls, *, hard: bool, deterministic: bool):
-        """Sample the interaction graph of one or more time steps.
+                 controls: Controls, *, deterministic: bool) -> jax.Array:
+        """Edge probabilities of one or more time steps (sample them with `sample_edges`).
 
         node_embedding: (..., N, d) phi_v(v); edge_features: (..., N, N, 2) A indexed [j, i];
-        edge_embedding: phi_e's (kernel, bias); adjacency: (..., N, N) a_ij;
-        noise: (..., N, G, N+1) Gumbel noise.
-        Returns edge_probs and sampled_edges, both (..., N, G, N+1) (target, head slot,
-        neighbour; ghost last; inactive head slots zero), and the sampled adjacency
-        (..., N, N+1) = sum over heads.
+        edge_embedding: phi_e's (kernel, bias); adjacency: (..., N, N) a_ij.
+        Returns edge_probs (..., N, G, N+1): target, head slot, neighbour (ghost last);
+        inactive head slots and invalid neighbours zero.
         """
         config = self.config
         num_groups = config.head_slots
@@ -182,9 +180,22 @@ class EdgeSelector(nn.Module):
         contributions = hidden @ output_by_group                                 # (..., N, L, G)
         logits = jnp.einsum("...lg,gh->...hl", contributions, heads) + self.mlp_out_bias
 
-        active_heads = (jnp.arange(num_groups) < n).astype(x.dtype)              # (H,)
-        edge_probs = masked_categorical(logits, valid_edges[..., None, :]) * active_heads[:, None]
-        sampled = gumbel_softmax(jnp.log(edge_probs + EPS), noise, controls.tau, hard)
-        sampled = sampled * active_heads[:, None]
-        sampled_adjacency = sampled.sum(axis=-2)                                 # (..., N, L)
-        return edge_probs, sampled, sampled_adjacency
+        return masked_categorical(logits, valid_edges[..., None, :]) * _active_heads(controls,
+                                                                                    num_groups)
+
+
+def _active_heads(controls: Controls, num_groups: int) -> jax.Array:
+    """(G, 1) 1 for the head slots h < n in use."""
+    return (jnp.arange(num_groups) < controls.num_edge_heads).astype(jnp.float32)[:, None]
+
+
+def sample_edges(edge_probs: jax.Array, noise: jax.Array, controls: Controls, *,
+                 hard: bool) -> tuple[jax.Array, jax.Array]:
+    """Gumbel-softmax samples of every active head: edge_probs and noise (..., N, G, N+1).
+
+    Returns the sampled edges (..., N, G, N+1) (inactive head slots zero) and the sampled
+    adjacency (..., N, N+1) = their sum over heads.
+    """
+    sampled = gumbel_softmax(jnp.log(edge_probs + EPS), noise, controls.tau, hard)
+    sampled = sampled * _active_heads(controls, edge_probs.shape[-2])
+    return sampled, sampled.sum(axis=-2)
