@@ -222,11 +222,14 @@ def main(argv: list[str] | None = None) -> None:
     import argparse
 
     from gst_jax.evaluate import load_run
+    from gst_jax.sweep import load_member
 
     parser = argparse.ArgumentParser(prog="python -m gst_jax.simulate",
                                      description=__doc__.split("\n\n")[0])
-    parser.add_argument("runs", nargs="*", help="work directories of trained models; none = "
-                        "only the constant-velocity model")
+    parser.add_argument("runs", nargs="*", help="work directories of trained models, or "
+                        "SWEEP_DIR:MEMBER for one member of a sweep (e.g. "
+                        "runs/sweep-hotel-e10:n4-partial-seed1000); none = only the "
+                        "constant-velocity model")
     parser.add_argument("--scenario", default="all", choices=("all", *SCENARIOS),
                         help="a: late crossing, b: boundary wanderers, c: intersection, "
                              "d: oncoming group (default: all)")
@@ -240,12 +243,13 @@ def main(argv: list[str] | None = None) -> None:
 
     models: list[tuple[str, StepModel]] = [("constant velocity", constant_velocity_model)]
     for run_path in args.runs:
-        run = load_run(run_path)
+        sweep_dir, _, member = run_path.partition(":")
+        run = load_member(sweep_dir, member) if member else load_run(run_path)
         heads = ([int(n) for n in args.edge_heads.split(",")] if args.edge_heads
                  else [run.model_config.num_edge_heads])
         for n in heads:
             controls = Controls.make(0.03, n, run.model_config.ghost)
-            label = f"{Path(run_path).name} n={n if n else 'F'}"
+            label = f"{Path(sweep_dir).name}{':' + member if member else ''} n={n if n else 'F'}"
             models.append((label, gst_model(run.params, run.model_config, controls)))
     names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
     out = Path(args.workdir)
@@ -255,7 +259,7 @@ def main(argv: list[str] | None = None) -> None:
         for label, model in models:
             positions = np.asarray(simulate(model, scenario, jax.random.key(args.seed)))
             row = {"scenario": scenario.name, "model": label, **measures(positions, scenario)}
-            stem = f"{scenario.name}-{label.replace(' ', '_').replace('=', '')}"
+            stem = f"{scenario.name}-{label.replace(' ', '_').replace('=', '').replace(':', '_')}"
             row["figure"] = str(plot_run(positions, scenario, out / f"{stem}.png",
                                          f"{scenario.name}, {label}"))
             rows.append(row)

@@ -108,6 +108,34 @@ def make_sweep_step(config: ModelConfig, *, rotate: bool = True):
                    donate_argnums=0)
 
 
+def load_member(workdir: str | Path, name: str, epoch: int | None = None) -> evaluate.Run:
+    """One member of a sweep's stacked checkpoint as a single run (e.g. to simulate it).
+
+    name: a member name such as 'n4-partial-seed1000'. The run's config has the member's n
+    and detection switch, and the sweep's head slots.
+    """
+    workdir = Path(workdir)
+    checkpointer = Checkpointer(workdir)
+    if checkpointer.latest_epoch is None:
+        raise SystemExit(f"error: no checkpoint in {workdir} (expected {workdir}/checkpoints/<epoch>)")
+    config = checkpointer.read_config(epoch)
+    if "members" not in config:
+        raise SystemExit(f"error: {workdir} holds a single run, not a sweep")
+    members = [Member(**m) for m in config["members"]]
+    names = [m.name for m in members]
+    if name not in names:
+        raise SystemExit(f"error: {workdir} has no member {name!r}; it has {', '.join(names)}")
+    model_config = ModelConfig(**config["model"])
+    state, _, epoch = checkpointer.restore(initial_states(model_config, members), epoch)
+    checkpointer.close()
+    member = members[names.index(name)]
+    train_config = TrainConfig(**{**config["train"], "seed": member.seed,
+                                  "fully_detected_only": member.fully_detected_only})
+    return evaluate.Run(workdir=workdir, model_config=member_config(model_config, member),
+                        data_config=DataConfig(**config["data"]), train_config=train_config,
+                        params=unstack(state.params, names.index(name)), epoch=epoch)
+
+
 def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
               members: Sequence[Member], workdir: str | Path, *, eval_samples: int = 20,
               max_eval_windows: int = 0, log=sys.stderr) -> dict:

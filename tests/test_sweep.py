@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 
+import chex
 import jax
 import numpy as np
+import pytest
 
 from gst_jax import data, sweep, train
 from gst_jax.checkpoints import Checkpointer
@@ -71,6 +73,13 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
     assert (tmp_path / "results.csv").read_text().startswith("edge_heads,detection")
     assert "| F (full connection) | partial | 1 |" in (tmp_path / "results.md").read_text()
     assert (tmp_path / "aoe_foe_vs_n.png").stat().st_size > 10_000
+
+    # A member read back as a single run (what `simulate SWEEP_DIR:MEMBER` uses).
+    run = sweep.load_member(tmp_path, members[1].name)
+    assert (run.model_config.num_edge_heads, run.train_config.fully_detected_only) == (2, True)
+    chex.assert_trees_all_equal(run.params, second)
+    with pytest.raises(SystemExit, match="no member 'n9-partial-seed1'"):
+        sweep.load_member(tmp_path, "n9-partial-seed1")
 
 
 
