@@ -222,13 +222,15 @@ def main(argv: list[str] | None = None) -> None:
     import argparse
 
     from gst_jax.evaluate import load_run
+    from gst_jax.pretrained import load_pretrained
     from gst_jax.sweep import load_member
 
     parser = argparse.ArgumentParser(prog="python -m gst_jax.simulate",
                                      description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="*", help="work directories of trained models, or "
                         "SWEEP_DIR:MEMBER for one member of a sweep (e.g. "
-                        "runs/sweep-hotel-e10:n4-partial-seed1000); none = only the "
+                        "runs/sweep-hotel-e10:n4-partial-seed1000), or pretrained:NAME for a "
+                        "shipped model (e.g. pretrained:eth); none = only the "
                         "constant-velocity model")
     parser.add_argument("--scenario", default="all", choices=("all", *SCENARIOS),
                         help="a: late crossing, b: boundary wanderers, c: intersection, "
@@ -243,14 +245,18 @@ def main(argv: list[str] | None = None) -> None:
 
     models: list[tuple[str, StepModel]] = [("constant velocity", constant_velocity_model)]
     for run_path in args.runs:
-        sweep_dir, _, member = run_path.partition(":")
-        run = load_member(sweep_dir, member) if member else load_run(run_path)
+        where, _, member = run_path.partition(":")
+        if where == "pretrained":
+            config, params = load_pretrained(member)
+        else:
+            run = load_member(where, member) if member else load_run(run_path)
+            config, params = run.model_config, run.params
         heads = ([int(n) for n in args.edge_heads.split(",")] if args.edge_heads
-                 else [run.model_config.num_edge_heads])
+                 else [config.num_edge_heads])
         for n in heads:
-            controls = Controls.make(0.03, n, run.model_config.ghost)
-            label = f"{Path(sweep_dir).name}{':' + member if member else ''} n={n if n else 'F'}"
-            models.append((label, gst_model(run.params, run.model_config, controls)))
+            controls = Controls.make(0.03, n, config.ghost)
+            label = f"{Path(where).name}{':' + member if member else ''} n={n if n else 'F'}"
+            models.append((label, gst_model(params, config, controls)))
     names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
     out = Path(args.workdir)
     rows = []

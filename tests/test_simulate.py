@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -57,3 +59,13 @@ def test_gst_drives_the_loop_without_nan():
     # The undetected human walks its script until detection (step 4).
     np.testing.assert_allclose(positions[:5, 1], scenario.start[1] + scenario.velocity[1]
                                * simulate.DT * np.arange(5)[:, None], atol=1e-5)
+
+
+def test_command_runs_a_shipped_model_and_writes_measures_and_figures(tmp_path, capsys):
+    simulate.main(["pretrained:eth", "--scenario", "a", "--workdir", str(tmp_path), "--json"])
+    rows = json.loads((tmp_path / "results.json").read_text())
+    assert [row["model"] for row in rows] == ["constant velocity", "pretrained:eth n=1"]
+    assert json.loads(capsys.readouterr().out) == rows
+    for row in rows:
+        assert row["scenario"] == "a_late_crossing" and row["min_distance_m"] > 0
+        assert Path(row["figure"]).stat().st_size > 5_000
