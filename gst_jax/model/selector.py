@@ -7,10 +7,13 @@ q/k/v is exactly the release's head h. The shared per-head MLP Linear(hd, hd) li
 top-left hd x hd block of a 128 x 128 weight and is applied to all heads at once as a
 block-diagonal matrix. One parameter layout and one compiled program serve every n | G.
 
-The edge part of the q/k/v projection, LayerNorm(phi_e(A)) W_c, is computed without the
-64-wide edge embedding: phi_e is affine in the 2-d edge feature A, so LayerNorm's centred
-numerator is affine in A and its variance a quadratic form of A. Per edge that leaves
-(A M + m0) / std + c with M (2, 3W): the same maths with about 30x fewer FLOPs there.
+Nothing 128-wide is formed per edge except the MLP's hidden layer. phi_e is affine in the
+2-d edge feature A, so LayerNorm(phi_e(A)) W_c is c_ij @ basis with 4 coefficients per edge
+(A / std, 1 / std, 1) and a (4, 3W) basis. Each edge's q/k/v is then a per-neighbour part
+plus an affine combination of 5 per-target vectors, and the attention scores and the
+value mixture are contracted through those parts (plus the MLP's first, linear layer,
+applied to the value parts before mixing): the same maths, with per-edge work of width 5
+instead of 3W = 384.
 """
 
 from __future__ import annotations
@@ -130,10 +133,9 @@ class EdgeSelector(nn.Module):
         kernel = self.in_proj_kernel
         from_neighbour = x_nb @ kernel[:d]                                       # (..., L, 3W)
         from_target = x @ kernel[d:2 * d] + self.in_proj_bias                    # (..., N, 3W)
-        edge_coefficients, edge_basis = self.edge_coefficients(edge_features, edge_embedding,
-                                                               adjacency)
-        c = jnp.concatenate([jnp.ones_like(edge_coefficients[..., :1]), edge_coefficients],
-                            axis=-1)                                             # (..., N, L, R)
+        coefficients, edge_basis = self.edge_coefficients(edge_features, edge_embedding,
+                                                          adjacency)
+        c = jnp.concatenate([jnp.ones_like(coefficients[..., :1]), coefficients], axis=-1)                                             # (..., N, L, R)
         basis = jnp.concatenate([from_target[..., None, :], jnp.broadcast_to(
             edge_basis, from_target.shape[:-1] + edge_basis.shape)], axis=-2)  # (..., N, R, 3W)
         # The MLP's first layer is linear in the attention output, so it is applied to the
