@@ -230,3 +230,18 @@ def test_tcn_readout_predicts_from_observations_only_without_nan(walk):
             config, run(p, batch, noise, hard=False, config=config), batch))(params)
         assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
         assert np.abs(grads["tcn"]["time_conv_0"]["kernel"]).sum() > 0
+
+
+def test_hash_dropout_is_bernoulli_with_independent_masks_per_key():
+    from gst_jax.model.layers import Dropout
+
+    dropout = Dropout(0.1)
+    x = jnp.ones((64, 50, 128))
+    apply = jax.jit(lambda key: dropout.apply({}, x, deterministic=False, rngs={"dropout": key}))
+    first, second = np.asarray(apply(jax.random.key(0))), np.asarray(apply(jax.random.key(1)))
+    kept, kept_too = first > 0, second > 0
+    assert abs(kept.mean() - 0.9) < 3e-3                     # 409600 draws: sd 5e-4
+    np.testing.assert_allclose(first[kept], 1 / 0.9, rtol=1e-6)
+    assert abs((kept == kept_too).mean() - 0.82) < 3e-3      # independent: 0.9^2 + 0.1^2
+    assert abs(kept[:, :, 0].mean() - 0.9) < 1e-2            # no stripe along the last axis
+    assert dropout.apply({}, x, deterministic=True) is x

@@ -85,11 +85,7 @@ class Dropout(nn.Module):
         if deterministic or self.rate == 0.0:
             return x
         seed = jax.random.bits(self.make_rng("dropout"), (2,), jnp.uint32)
-        index = jnp.zeros(x.shape, jnp.uint32)
-        stride = 1
-        for axis in reversed(range(x.ndim)):
-            index = index + jax.lax.broadcasted_iota(jnp.uint32, x.shape, axis) * jnp.uint32(stride)
-            stride *= x.shape[axis]
+        index = jnp.arange(x.size, dtype=jnp.uint32).reshape(x.shape)
         bits = _mix32(_mix32(index * jnp.uint32(0x9E3779B9) + seed[0]) ^ seed[1])
         keep = bits >= jnp.uint32(int(self.rate * 2 ** 32))
         return jnp.where(keep, x / (1.0 - self.rate), jnp.zeros_like(x))
