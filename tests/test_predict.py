@@ -55,9 +55,10 @@ def test_samples_share_the_observation_pass_without_changing_them():
     key = jax.random.key(3)
     prediction = gst_jax.make_predict(config, num_samples=K)(params, key, batch)
     controls = Controls.make(EVAL_TAU, config.num_edge_heads, config.ghost)
+    alone_rollout = jax.jit(lambda sample_key: rollout(params, config, batch, sample_key,
+                                                       controls, hard=True, deterministic=True))
     for k, sample_key in enumerate(jax.random.split(key, K)):
-        alone = rollout(params, config, batch, sample_key, controls, hard=True,
-                        deterministic=True)
+        alone = alone_rollout(sample_key)
         np.testing.assert_allclose(prediction.displacements[k], alone.displacements, atol=1e-5)
         np.testing.assert_allclose(prediction.edge_probs[k], alone.edge_probs, atol=1e-6)
 
