@@ -85,12 +85,17 @@ def observed_edge_probabilities(params, config: ModelConfig, batch: SceneBatch,
     They depend on the observations only, not on the noise: K samples of one batch need them
     once (8 of the 19 selector calls of a rollout).
     """
-    node_mask = batch.node_mask[:, :config.obs_len]
-    positions = batch.positions[:, :config.obs_len]
-    return GST(config).apply(
-        {"params": params}, graph.displacements(positions, node_mask),
-        graph.edge_features(positions, node_mask), node_mask, controls, deterministic=True,
-        method=GST.select)
+    return GST(config).apply({"params": params}, *_observed_inputs(batch, config.obs_len),
+                             controls, deterministic=True, method=GST.select)
+
+
+def _observed_inputs(batch: SceneBatch, obs_len: int):
+    """Node features (B, T, N, 2), edge features (B, T, N, N, 2) and node mask (B, T, N) of
+    the observed steps."""
+    node_mask = batch.node_mask[:, :obs_len]
+    positions = batch.positions[:, :obs_len]
+    return (graph.displacements(positions, node_mask), graph.edge_features(positions, node_mask),
+            node_mask)
 
 
 def rollout_with_noise(params, config: ModelConfig, batch: SceneBatch, noise: RolloutNoise,
@@ -131,10 +136,7 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
         return delta * keep[..., None]
 
     # --- Observation: one selector/encoder call over all observed steps.
-    node_mask = batch.node_mask[:, :obs_len]                                    # (B, T, N)
-    positions = batch.positions[:, :obs_len]
-    node_features = graph.displacements(positions, node_mask)
-    edge_features = graph.edge_features(positions, node_mask)                   # (B, T, N, N, 2)
+    node_features, edge_features, node_mask = _observed_inputs(batch, obs_len)
     key, obs_key, dropout_key = jax.random.split(key, 3)
     if recorded is None:
         gumbel_obs = sample_gumbel(obs_key, (batch_size, obs_len) + noise_shape[1:])

@@ -82,7 +82,6 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
         sweep.load_member(tmp_path, "n9-partial-seed1")
 
 
-
 def _fake_evaluations(aoe_by_member: dict) -> tuple[list, list]:
     members = list(aoe_by_member)
     evaluations = [{"aoe": aoe, "foe": 2 * aoe, "cv_aoe": 1.0, "cv_foe": 2.0}

@@ -135,16 +135,20 @@ class EdgeSelector(nn.Module):
         from_target = x @ kernel[d:2 * d] + self.in_proj_bias                    # (..., N, 3W)
         coefficients, edge_basis = self.edge_coefficients(edge_features, edge_embedding,
                                                           adjacency)
-        c = jnp.concatenate([jnp.ones_like(coefficients[..., :1]), coefficients], axis=-1)                                             # (..., N, L, R)
-        basis = jnp.concatenate([from_target[..., None, :], jnp.broadcast_to(
-            edge_basis, from_target.shape[:-1] + edge_basis.shape)], axis=-2)  # (..., N, R, 3W)
+        c = jnp.concatenate([jnp.ones_like(coefficients[..., :1]), coefficients],
+                            axis=-1)                                             # (..., N, L, R)
         # The MLP's first layer is linear in the attention output, so it is applied to the
         # values' parts before they are mixed (block-diagonal: each head's own weight).
         mlp_hidden = block_diagonal(self.mlp_hidden_kernel, head_dim)
-        node_part = jnp.concatenate([from_neighbour[..., :2 * width],
-                                     from_neighbour[..., 2 * width:] @ mlp_hidden], axis=-1)
-        basis = jnp.concatenate([basis[..., :2 * width], basis[..., 2 * width:] @ mlp_hidden],
-                                axis=-1)
+
+        def through_mlp(t):  # (..., 3W): the value part times the MLP's first layer
+            return jnp.concatenate([t[..., :2 * width], t[..., 2 * width:] @ mlp_hidden], axis=-1)
+
+        node_part = through_mlp(from_neighbour)                                  # (..., L, 3W)
+        target_part = through_mlp(from_target)                                   # (..., N, 3W)
+        edge_basis = through_mlp(edge_basis)                                     # (R - 1, 3W)
+        basis = jnp.concatenate([target_part[..., None, :], jnp.broadcast_to(
+            edge_basis, target_part.shape[:-1] + edge_basis.shape)], axis=-2)  # (..., N, R, 3W)
 
         def grouped(t):  # (..., 3W) -> q, k, v parts, each (..., G, W/G)
             t = t.reshape(t.shape[:-1] + (3, num_groups, width // num_groups))
