@@ -218,6 +218,44 @@ def plot_run(positions: np.ndarray, scenario: Scenario, path: Path, title: str) 
     return path
 
 
+def animate_run(positions: np.ndarray, scenario: Scenario, path: Path, title: str,
+                fps: float = 2 / DT) -> Path:
+    """Animated GIF of a run (Pillow writer), one frame per step at `fps` (default 2x real
+    time): trails so far, agents as dots, undetected agents hollow."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    num_steps, num_agents = positions.shape[:2]
+    colors = ["tab:red"] + ["tab:blue"] * (num_agents - 1)
+    lo, hi = positions.reshape(-1, 2).min(0) - 0.5, positions.reshape(-1, 2).max(0) + 0.5
+    aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
+    fig, ax = plt.subplots(figsize=(4.0, float(np.clip(4.0 * aspect, 1.5, 4.0)) + 0.5))
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.plot(*scenario.goal, "*", color="tab:red", ms=9)
+    ax.set_title(title, fontsize=7)
+    ax.tick_params(labelsize=6)
+    trails = [ax.plot([], [], "-", color=c, lw=1.2)[0] for c in colors]
+    dots = [ax.plot([], [], "o", color=c, ms=5)[0] for c in colors]
+
+    def draw(t: int) -> list:
+        for a in range(num_agents):
+            trails[a].set_data(positions[:t + 1, a, 0], positions[:t + 1, a, 1])
+            dots[a].set_data(positions[t, a, :1], positions[t, a, 1:])
+            dots[a].set_markerfacecolor(colors[a] if t >= scenario.detected_from[a] else "none")
+        return trails + dots
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FuncAnimation(fig, draw, frames=num_steps, blit=True).save(
+        path, writer=PillowWriter(fps=fps), dpi=80)
+    plt.close(fig)
+    return path
+
+
 def main(argv: list[str] | None = None) -> None:
     import argparse
 
@@ -239,6 +277,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated n to run each model with (traced; default: the "
                              "model's own)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the Gumbel samples")
+    parser.add_argument("--animate", action="store_true",
+                        help="also write an animated GIF of every run")
     parser.add_argument("--workdir", default="runs/simulate", help="output directory")
     parser.add_argument("--json", action="store_true", help="print the table as JSON")
     args = parser.parse_args(argv)
@@ -268,6 +308,9 @@ def main(argv: list[str] | None = None) -> None:
             stem = f"{scenario.name}-{label.replace(' ', '_').replace('=', '').replace(':', '_')}"
             row["figure"] = str(plot_run(positions, scenario, out / f"{stem}.png",
                                          f"{scenario.name}, {label}"))
+            if args.animate:
+                row["animation"] = str(animate_run(positions, scenario, out / f"{stem}.gif",
+                                                   f"{scenario.name}, {label}"))
             rows.append(row)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
@@ -280,7 +323,7 @@ def main(argv: list[str] | None = None) -> None:
     for row in rows:
         print("| " + " | ".join(f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c])
                                 for c in columns) + " |")
-    print(f"written: {out}/results.json and one PNG per run", file=sys.stderr)
+    print(f"written: {out}/results.json and one PNG{' and GIF' if args.animate else ''} per run", file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import PIL.Image
 import pytest
 
 from gst_jax import simulate
@@ -62,10 +63,13 @@ def test_gst_drives_the_loop_without_nan():
 
 
 def test_command_runs_a_shipped_model_and_writes_measures_and_figures(tmp_path, capsys):
-    simulate.main(["pretrained:eth", "--scenario", "a", "--workdir", str(tmp_path), "--json"])
+    simulate.main(["pretrained:eth", "--scenario", "a", "--animate", "--workdir", str(tmp_path),
+                   "--json"])
     rows = json.loads((tmp_path / "results.json").read_text())
     assert [row["model"] for row in rows] == ["constant velocity", "pretrained:eth n=1"]
     assert json.loads(capsys.readouterr().out) == rows
     for row in rows:
         assert row["scenario"] == "a_late_crossing" and row["min_distance_m"] > 0
         assert Path(row["figure"]).stat().st_size > 5_000
+        with PIL.Image.open(row["animation"]) as gif:   # one frame per simulated step
+            assert (gif.format, gif.n_frames) == ("GIF", simulate.late_crossing().steps + 1)
