@@ -289,6 +289,12 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     return summary
 
 
+def training_time_s(workdir: str | Path) -> float:
+    """Sum of the epoch times in metrics.jsonl: the training's wall time across resumes."""
+    lines = (Path(workdir) / "metrics.jsonl").read_text().splitlines()
+    return sum(json.loads(line).get("epoch_time_s", 0.0) for line in lines)
+
+
 def _last_metric(metrics_path: Path, name: str):
     lines = metrics_path.read_text().splitlines() if metrics_path.exists() else []
     return json.loads(lines[-1]).get(name) if lines else None

@@ -69,11 +69,12 @@ def check_aoe(config: ModelConfig, params, data_config) -> float:
 def export(run_path: str, name: str) -> Path:
     """Copy a trained run's latest parameters and its evaluation into the package."""
     from gst_jax.evaluate import load_run
-    from gst_jax.train import run_config
+    from gst_jax.train import run_config, training_time_s
 
     run = load_run(run_path)
-    evaluations = sorted((run.workdir / "eval").glob("*-test-e*.json"))
-    metrics = json.loads(evaluations[-1].read_text()) if evaluations else None
+    evaluation = (run.workdir / "eval" / f"{run.data_config.scene}-{run.data_config.protocol}"
+                  f"-test-e{run.epoch}.json")
+    metrics = json.loads(evaluation.read_text()) if evaluation.exists() else None
     folder = ROOT / name
     if folder.exists():
         shutil.rmtree(folder)
@@ -82,6 +83,7 @@ def export(run_path: str, name: str) -> Path:
         checkpointer.save((folder / "params").absolute(), run.params)
     meta = {**run_config(run.model_config, run.data_config, run.train_config),
             "epoch": run.epoch, "source": str(run.workdir), "test_metrics": metrics,
+            "train_time_s": training_time_s(run.workdir),
             "check": {**CHECK, "aoe": check_aoe(run.model_config, run.params, run.data_config)}}
     (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     return folder

@@ -1,0 +1,43 @@
+"""experiments/table1.py: rows from work directories and shipped models, spread over seeds."""
+
+from __future__ import annotations
+
+import json
+import runpy
+from pathlib import Path
+
+import pytest
+
+TABLE1 = runpy.run_path(str(Path(__file__).parents[1] / "experiments" / "table1.py"))
+
+
+def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[float]) -> None:
+    workdir = TABLE1["workdir_of"](runs, scene, "paper", "deterministic", 200, seed)
+    (workdir / "eval").mkdir(parents=True)
+    (workdir / "metrics.jsonl").write_text("".join(
+        json.dumps({"epoch": e + 1, "epoch_time_s": t}) + "\n" for e, t in enumerate(epoch_times)))
+    result = {"aoe": aoe, "aoe_std": 0.01, "foe": 2 * aoe, "foe_std": 0.02, "cv_aoe": 0.5,
+              "cv_foe": 1.0, "epoch": 200, "pedestrians": 7, "protocol": "fake"}
+    (workdir / "eval" / f"{scene}-paper-test-e200.json").write_text(json.dumps(result))
+
+
+def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_path):
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
+    _fake_run(tmp_path / "runs", "hotel", 1001, 0.30, [60.0])
+    TABLE1["main"](["--scenes", "hotel", "eth", "zara2", "--seeds", "1000,1001", "--runs",
+                    str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")])
+    hotel, eth, zara2 = json.loads((tmp_path / "out" / "table1.json").read_text())
+
+    assert hotel["seeds"] == [1000, 1001] and hotel["spread_over"] == "seeds"
+    assert hotel["aoe"] == pytest.approx(0.25) and hotel["aoe_spread"] == pytest.approx(0.05)
+    assert hotel["foe"] == pytest.approx(0.50) and hotel["train_time_s"] == [60.0, 60.0]
+    # eth seed 1000 is the shipped eth_d model's record; seed 1001 was never trained.
+    shipped = json.loads((Path(__file__).parents[1] / "gst_jax" / "pretrained" / "eth_d"
+                          / "meta.json").read_text())["test_metrics"]
+    assert eth["seeds"] == [1000] and eth["aoe"] == shipped["aoe"]
+    assert eth["aoe_spread"] == shipped["aoe_std"] and eth["spread_over"] == "20 runs"
+    assert "aoe" not in zara2
+    table = (tmp_path / "out" / "table1.md").read_text()
+    assert "| zara2 | missing | missing | 0.32 | 0.70 |" in table
+    assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.21 | 0.38 |" in table
+    assert "No AVG row" in table
