@@ -195,6 +195,10 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
                    attention if return_attention else None)
         return (hidden, cell, delta, edges, key), outputs
 
+    # Rematerialised in the backward pass: storing each step's selector activations,
+    # (B, N, L, 128) per step, costs more memory traffic than recomputing them (eth training
+    # step 9.0 -> 7.8 s per epoch on the 2-core CPU; benchmarks/README.md).
+    predict_step = jax.checkpoint(predict_step)
     step_noise = (None if recorded is None else recorded.gumbel_pred, normal[1:])
     carry = (hidden, cell, delta, edge_features[:, -1], key)
     _, (deltas, mus, sigmas, corrs, probs, sampled, attention) = jax.lax.scan(
