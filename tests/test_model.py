@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -82,6 +83,12 @@ def move_batch(positions, mask, num_nodes, order):
 
 def run(params, batch, noise, *, hard=True, tau=0.5, config=CONFIG, n=None):
     controls = Controls.make(tau, config.num_edge_heads if n is None else n, config.ghost)
+    return _jitted_rollout(params, batch, noise, controls, hard, config)
+
+
+@functools.partial(jax.jit, static_argnums=(4, 5))
+def _jitted_rollout(params, batch, noise, controls, hard, config):
+    # One compile per (shape, hard, config): tau and n are traced, as in training.
     return rollout_with_noise(params, config, batch, noise, controls, hard=hard,
                               return_attention=True)
 
