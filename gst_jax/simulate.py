@@ -323,7 +323,8 @@ def main(argv: list[str] | None = None) -> None:
     for row in rows:
         print("| " + " | ".join(f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c])
                                 for c in columns) + " |")
-    print(f"written: {out}/results.json and one PNG{' and GIF' if args.animate else ''} per run", file=sys.stderr)
+    figures = "PNG and GIF" if args.animate else "PNG"
+    print(f"written: {out}/results.json and one {figures} per run", file=sys.stderr)
 
 
 if __name__ == "__main__":
