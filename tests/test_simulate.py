@@ -13,7 +13,9 @@ import pytest
 
 from gst_jax import simulate
 from gst_jax.config import ModelConfig
+from gst_jax.data.batch import SceneBatch
 from gst_jax.model import Controls, init_params
+from gst_jax.rollout import rollout
 
 
 @pytest.mark.parametrize("name", list(simulate.SCENARIOS))
@@ -60,6 +62,16 @@ def test_gst_drives_the_loop_without_nan():
     # The undetected human walks its script until detection (step 4).
     np.testing.assert_allclose(positions[:5, 1], scenario.start[1] + scenario.velocity[1]
                                * simulate.DT * np.arange(5)[:, None], atol=1e-5)
+    # The model's step is the first displacement of a full 12-step rollout.
+    history = np.cumsum(np.full((8, 2, 2), 0.4), axis=0) + np.array([[0.0, 0.0], [0.0, 2.0]])
+    batch = SceneBatch(positions=np.concatenate([history, np.zeros((12, 2, 2))])[None],
+                       position_mask=np.repeat([1.0, 0.0], [8, 12])[None, :, None] * np.ones(2),
+                       node_mask=np.repeat([1.0, 0.0], [8, 12])[None, :, None] * np.ones(2),
+                       scene_mask=np.ones(1), window_index=np.zeros(1, np.int32))
+    full = rollout(params, config, batch, jax.random.key(2), Controls.make(0.03, 1, True),
+                   hard=True, deterministic=True)
+    np.testing.assert_allclose(model(history, np.ones((8, 2)), jax.random.key(2)),
+                               full.displacements[0, 0], atol=1e-6)
 
 
 def test_command_runs_a_shipped_model_and_writes_measures_and_figures(tmp_path, capsys):
