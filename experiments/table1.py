@@ -111,8 +111,8 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
              f"n = 1, ghost, {epochs} epochs; AOE / FOE in metres on fully detected pedestrians "
              "of the test split. Ours: each run's value is the mean over 20 evaluation runs (hard "
              "samples, tau 0.03); ± is the std over seeds, or over the 20 runs for one seed. "
-             "CV: constant velocity on the same pedestrians. Train time: the 2-core CPU machine "
-             "unless stated otherwise.", "",
+             "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
+             "(metrics.jsonl) on the machine that trained the run, per seed.", "",
              "| scene | ours AOE | ours FOE | paper AOE | paper FOE | CV AOE / FOE | seeds | "
              "train time | command |",
              "|---|---|---|---|---|---|---|---|---|"]
