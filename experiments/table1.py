@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gst_jax.train import training_time_s
 from gst_jax import cli, pretrained
 from gst_jax.config import ETH_UCY_SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.train import training_time_s
 
 # MODEL.md section 4: the paper's Table I (AOE / FOE in metres, fully detected pedestrians).
 PAPER = {
@@ -56,7 +56,7 @@ def final_evaluation(workdir: Path, scene: str, protocol: str, epochs: int) -> d
 def shipped_record(scene: str, protocol: str, output: str, epochs: int,
                    seed: int) -> dict | None:
     """The test metrics recorded with a shipped pretrained model of exactly this run."""
-    name = f"{scene}_{output[0]}"
+    name = f"{scene}_{'d' if output == 'deterministic' else 'p'}"   # e.g. eth_d, eth_p
     if name not in pretrained.available():
         return None
     meta = pretrained.load_meta(name)
