@@ -68,15 +68,15 @@ def main() -> None:
     peak = measure_peak_gflops()
     gflops = flops / elapsed / 1e9
     release = RELEASE_EPOCH_S.get(args.scene)
-    epoch_s = elapsed / len(batches) * steps_per_run / args.epochs
+    per_epoch = steps_per_run / len(batches) / args.epochs   # from the timed steps to an epoch
+    epoch_s = elapsed * per_epoch
     row = record("train", scene=args.scene, edge_heads=args.edge_heads, windows=windows,
                  steps=len(batches), extrapolated=len(batches) < steps_per_run,
                  buckets=sorted({b.shape[2] for b in batches}),
                  compile_s=compile_s, epoch_s=epoch_s,
                  windows_per_s=windows / elapsed,
                  speedup_vs_release=(release / epoch_s) if release else None,
-                 gflop_per_epoch=flops / 1e9 * steps_per_run / len(batches) / args.epochs,
-                 gflops=gflops,
+                 gflop_per_epoch=flops / 1e9 * per_epoch, gflops=gflops,
                  peak_gflops=peak, fraction_of_peak=gflops / peak, peak_rss_gib=peak_rss_gib())
     print_table([row], ["scene", "windows", "steps", "extrapolated", "buckets", "compile_s",
                         "epoch_s", "windows_per_s",

@@ -41,11 +41,11 @@ def workdir_of(runs: Path, scene: str, protocol: str, output: str, epochs: int,
                                ModelConfig(output=output), TrainConfig(epochs=epochs, seed=seed))
 
 
-def train_command(scene: str, protocol: str, output: str, epochs: int, seed: int,
-                  workdir: Path) -> list[str]:
-    return [sys.executable, "-m", "gst_jax.train", "--scene", scene, "--protocol", protocol,
-            "--output", output, "--epochs", str(epochs), "--seed", str(seed),
-            "--workdir", str(workdir)]
+def train_flags(scene: str, protocol: str, output: str, epochs: int,
+                seed: int | str) -> list[str]:
+    """The flags of `python -m gst_jax.train` for one run of the table."""
+    return ["--scene", scene, "--protocol", protocol, "--output", output,
+            "--epochs", str(epochs), "--seed", str(seed)]
 
 
 def final_evaluation(workdir: Path, scene: str, protocol: str, epochs: int) -> dict | None:
@@ -79,7 +79,9 @@ def run_scene_seed(runs: Path, scene: str, protocol: str, output: str, epochs: i
         return {**record, "seed": seed}
     if not train:
         return None
-    subprocess.run(train_command(scene, protocol, output, epochs, seed, workdir), check=True)
+    subprocess.run([sys.executable, "-m", "gst_jax.train",
+                    *train_flags(scene, protocol, output, epochs, seed), "--workdir", str(workdir)],
+                   check=True)
     subprocess.run([sys.executable, "-m", "gst_jax.evaluate", str(workdir)], check=True)
     return run_scene_seed(runs, scene, protocol, output, epochs, seed, train=False)
 
@@ -128,11 +130,6 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
         else:
             lines.append(f"| {r['scene']} | missing | missing | {paper} | - | - | - | "
                          f"`{r['command']}` |")
-    for r in rows:
-        for seed, run in r.get("per_seed", {}).items():
-            if run["workdir"].startswith("gst_jax/pretrained/"):
-                lines += ["", f"{r['scene']}, seed {seed}: the test metrics recorded with the "
-                          f"shipped model `{run['workdir']}` (trained by the command in its row)."]
     if all("aoe" in r for r in rows) and len(rows) == len(ETH_UCY_SCENES):
         mean = lambda k: sum(r[k] for r in rows) / len(rows)
         lines.append(f"| AVG | {mean('aoe'):.3f} | {mean('foe'):.3f} | {mean('paper_aoe'):.2f} | "
@@ -140,6 +137,11 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
                      "| | |")
     else:
         lines += ["", "No AVG row: not every scene has a finished run."]
+    for r in rows:
+        for seed, run in r.get("per_seed", {}).items():
+            if run["workdir"].startswith("gst_jax/pretrained/"):
+                lines += ["", f"{r['scene']}, seed {seed}: the test metrics recorded with the "
+                          f"shipped model `{run['workdir']}` (trained by the command in its row)."]
     return "\n".join(lines) + "\n"
 
 
@@ -168,9 +170,9 @@ def main(argv: list[str] | None = None) -> None:
     for scene in args.scenes:
         per_seed = [r for seed in seeds if (r := run_scene_seed(
             Path(args.runs), scene, args.protocol, args.output, args.epochs, seed, args.train))]
-        command = (f"python -m gst_jax.train --scene {scene} --protocol {args.protocol} --output "
-                   f"{args.output} --epochs {args.epochs} --seed "
-                   f"{seeds[0] if len(seeds) == 1 else 'SEED'}")
+        seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
+        command = " ".join(["python -m gst_jax.train", *train_flags(
+            scene, args.protocol, args.output, args.epochs, seed_shown)])
         rows.append(summarize(scene, args.output, per_seed, command))
     table = markdown(rows, args.output, args.protocol, args.epochs)
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (
