@@ -7,8 +7,10 @@
 Each (scene, seed) is the work directory of `python -m gst_jax.train --scene S --protocol P
 --output O --epochs E --seed s` under --runs (n = 1, ghost: the paper's configuration).
 `--train` runs or resumes that command where the run is incomplete, then evaluates it with the
-paper protocol (`python -m gst_jax.evaluate`, 20 runs). Scenes without a finished evaluation
-are listed as missing, never filled in. Writes <results>/table1[_loo][_p].md and .json.
+paper protocol (`python -m gst_jax.evaluate`, 20 runs). Every finished evaluation is also kept
+as a small record in <results>/runs/<run name>.json (committed), so the table survives the loss
+of the work directories. Scenes without a finished evaluation are listed as missing, never
+filled in. Writes <results>/table1[_loo][_p].md and .json.
 """
 
 from __future__ import annotations
@@ -67,14 +69,21 @@ def shipped_record(scene: str, protocol: str, output: str, epochs: int,
             "train_time_s": meta.get("train_time_s")}
 
 
-def run_scene_seed(runs: Path, scene: str, protocol: str, output: str, epochs: int, seed: int,
-                   train: bool) -> dict | None:
-    """Evaluation and training time of one run: its work directory's final evaluation, else
-    the record of the shipped model trained by the same command, else (if `train`) a new run."""
+def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output: str,
+                   epochs: int, seed: int, train: bool) -> dict | None:
+    """Evaluation and training time of one run: its work directory's final evaluation (kept as
+    a record in `records`), else that record, else the record of the shipped model trained by
+    the same command, else (if `train`) a new run."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
+    record_path = records / f"{workdir.name}.json"
     if (result := final_evaluation(workdir, scene, protocol, epochs)) is not None:
-        return {**result, "seed": seed, "workdir": str(workdir),
-                "train_time_s": training_time_s(workdir)}
+        record = {**result, "seed": seed, "workdir": str(workdir),
+                  "train_time_s": training_time_s(workdir)}
+        records.mkdir(parents=True, exist_ok=True)
+        record_path.write_text(json.dumps(record, indent=2) + "\n")
+        return record
+    if record_path.exists():
+        return json.loads(record_path.read_text())
     if (record := shipped_record(scene, protocol, output, epochs, seed)) is not None:
         return {**record, "seed": seed}
     if not train:
@@ -83,7 +92,7 @@ def run_scene_seed(runs: Path, scene: str, protocol: str, output: str, epochs: i
                     *train_flags(scene, protocol, output, epochs, seed), "--workdir", str(workdir)],
                    check=True)
     subprocess.run([sys.executable, "-m", "gst_jax.evaluate", str(workdir)], check=True)
-    return run_scene_seed(runs, scene, protocol, output, epochs, seed, train=False)
+    return run_scene_seed(runs, records, scene, protocol, output, epochs, seed, train=False)
 
 
 def summarize(scene: str, output: str, per_seed: list[dict], command: str) -> dict:
@@ -103,7 +112,9 @@ def summarize(scene: str, output: str, per_seed: list[dict], command: str) -> di
                protocol=per_seed[0]["protocol"],
                train_time_s=[r["train_time_s"] for r in per_seed],
                per_seed={str(r["seed"]): {"aoe": r["aoe"], "foe": r["foe"],
-                                          "workdir": r["workdir"]} for r in per_seed})
+                                          "workdir": r["workdir"],
+                                          **({"note": r["note"]} if "note" in r else {})}
+                         for r in per_seed})
     return row
 
 
@@ -142,6 +153,8 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
             if run["workdir"].startswith("gst_jax/pretrained/"):
                 lines += ["", f"{r['scene']}, seed {seed}: the test metrics recorded with the "
                           f"shipped model `{run['workdir']}` (trained by the command in its row)."]
+            if "note" in run:
+                lines += ["", f"{r['scene']}, seed {seed}: {run['note']}"]
     return "\n".join(lines) + "\n"
 
 
@@ -161,7 +174,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="train (or resume) and evaluate runs that have no final evaluation")
     parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
     parser.add_argument("--workdir", default="results",
-                        help="where table1[_loo][_p].md/.json are written (default: results)")
+                        help="where table1[_loo][_p].md/.json and the per-run records runs/*.json "
+                             "are written (default: results)")
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = parser.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",")]
@@ -169,7 +183,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for scene in args.scenes:
         per_seed = [r for seed in seeds if (r := run_scene_seed(
-            Path(args.runs), scene, args.protocol, args.output, args.epochs, seed, args.train))]
+            Path(args.runs), Path(args.workdir) / "runs", scene, args.protocol, args.output,
+            args.epochs, seed, args.train))]
         seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
         command = " ".join(["python -m gst_jax.train", *train_flags(
             scene, args.protocol, args.output, args.epochs, seed_shown)])

@@ -41,3 +41,19 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
     assert "| zara2 | missing | missing | 0.32 | 0.70 |" in table
     assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.21 | 0.38 |" in table
     assert "No AVG row" in table
+
+
+def test_finished_runs_are_kept_as_records_that_outlive_their_work_directories(tmp_path):
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
+    argv = ["--scenes", "hotel", "--seeds", "1000", "--runs", str(tmp_path / "runs"),
+            "--workdir", str(tmp_path / "out")]
+    TABLE1["main"](argv)
+    first = (tmp_path / "out" / "table1.json").read_text()
+    record = json.loads((tmp_path / "out" / "runs" / "hotel-paper-d-n1-e200-seed1000.json")
+                        .read_text())
+    assert record["aoe"] == 0.20 and record["train_time_s"] == 60.0
+
+    for path in sorted((tmp_path / "runs").rglob("*"), reverse=True):   # the runs are lost
+        path.unlink() if path.is_file() else path.rmdir()
+    TABLE1["main"](argv)
+    assert (tmp_path / "out" / "table1.json").read_text() == first
