@@ -106,7 +106,9 @@ def summarize(scene: str, output: str, per_seed: list[dict], command: str) -> di
         row[name] = float(values.mean())
         row[f"{name}_spread"] = (float(values.std()) if len(values) > 1
                                  else float(per_seed[0][f"{name}_std"]))
-    row.update(seeds=[r["seed"] for r in per_seed], spread_over="seeds" if len(per_seed) > 1
+    kde = [r.get("kde_nll") for r in per_seed]
+    row.update(kde_nll=None if None in kde else float(np.mean(kde)),
+               seeds=[r["seed"] for r in per_seed], spread_over="seeds" if len(per_seed) > 1
                else "20 runs", cv_aoe=per_seed[0]["cv_aoe"], cv_foe=per_seed[0]["cv_foe"],
                epoch=per_seed[0]["epoch"], pedestrians=per_seed[0]["pedestrians"],
                protocol=per_seed[0]["protocol"],
@@ -119,33 +121,39 @@ def summarize(scene: str, output: str, per_seed: list[dict], command: str) -> di
 
 
 def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
-    label = "GST (D)" if output == "deterministic" else "GST (P)"
-    lines = [f"# Table I, {label}, {protocol} protocol", "",
+    gaussian = output == "gaussian"
+    kde_head, kde_rule = (" KDE-NLL |", "---|") if gaussian else ("", "")
+    lines = [f"# Table I, {'GST (P)' if gaussian else 'GST (D)'}, {protocol} protocol", "",
              f"n = 1, ghost, {epochs} epochs; AOE / FOE in metres on fully detected pedestrians "
              "of the test split. Ours: each run's value is the mean over 20 evaluation runs (hard "
-             "samples, tau 0.03); ± is the std over seeds, or over the 20 runs for one seed. "
-             "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
+             "samples, tau 0.03" + ("; each run samples the Gaussians too" if gaussian else "")
+             + "); ± is the std over seeds, or over the 20 runs for one seed. "
+             + ("KDE-NLL of the 20 samples (Trajectron++ rule; the paper gives only its "
+                "average, -1.98). " if gaussian else "")
+             + "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
              "(metrics.jsonl) on the machine that trained the run, per seed.", "",
-             "| scene | ours AOE | ours FOE | paper AOE | paper FOE | CV AOE / FOE | seeds | "
-             "train time | command |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             f"| scene | ours AOE | ours FOE | paper AOE | paper FOE |{kde_head} CV AOE / FOE | "
+             "seeds | train time | command |",
+             f"|---|---|---|---|---|{kde_rule}---|---|---|---|"]
     for r in rows:
-        paper = f"{r['paper_aoe']:.2f} | {r['paper_foe']:.2f}"
+        paper = f"{r['paper_aoe']:.2f} | {r['paper_foe']:.2f} |"
         if "aoe" in r:
             minutes = ", ".join("?" if t is None else f"{t / 60:.0f}" for t in r["train_time_s"])
+            kde = f" {r['kde_nll']:.2f} |" if gaussian else ""
             lines.append(
                 f"| {r['scene']} | {r['aoe']:.3f} ± {r['aoe_spread']:.3f} | "
-                f"{r['foe']:.3f} ± {r['foe_spread']:.3f} | {paper} | "
+                f"{r['foe']:.3f} ± {r['foe_spread']:.3f} | {paper}{kde} "
                 f"{r['cv_aoe']:.2f} / {r['cv_foe']:.2f} | {', '.join(map(str, r['seeds']))} | "
                 f"{minutes} min | `{r['command']}` |")
         else:
-            lines.append(f"| {r['scene']} | missing | missing | {paper} | - | - | - | "
-                         f"`{r['command']}` |")
+            lines.append(f"| {r['scene']} | missing | missing | {paper}{' - |' if gaussian else ''}"
+                         f" - | - | - | `{r['command']}` |")
     if all("aoe" in r for r in rows) and len(rows) == len(ETH_UCY_SCENES):
         mean = lambda k: sum(r[k] for r in rows) / len(rows)
+        kde = f" {mean('kde_nll'):.2f} (paper -1.98) |" if gaussian else ""
         lines.append(f"| AVG | {mean('aoe'):.3f} | {mean('foe'):.3f} | {mean('paper_aoe'):.2f} | "
-                     f"{mean('paper_foe'):.2f} | {mean('cv_aoe'):.2f} / {mean('cv_foe'):.2f} | "
-                     "| | |")
+                     f"{mean('paper_foe'):.2f} |{kde} {mean('cv_aoe'):.2f} / {mean('cv_foe'):.2f} "
+                     "| | | |")
     else:
         lines += ["", "No AVG row: not every scene has a finished run."]
     for r in rows:

@@ -11,13 +11,14 @@ import pytest
 TABLE1 = runpy.run_path(str(Path(__file__).parents[1] / "experiments" / "table1.py"))
 
 
-def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[float]) -> None:
-    workdir = TABLE1["workdir_of"](runs, scene, "paper", "deterministic", 200, seed)
+def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[float],
+              output: str = "deterministic") -> None:
+    workdir = TABLE1["workdir_of"](runs, scene, "paper", output, 200, seed)
     (workdir / "eval").mkdir(parents=True)
     (workdir / "metrics.jsonl").write_text("".join(
         json.dumps({"epoch": e + 1, "epoch_time_s": t}) + "\n" for e, t in enumerate(epoch_times)))
     result = {"aoe": aoe, "aoe_std": 0.01, "foe": 2 * aoe, "foe_std": 0.02, "cv_aoe": 0.5,
-              "cv_foe": 1.0, "epoch": 200, "pedestrians": 7, "protocol": "fake"}
+              "cv_foe": 1.0, "kde_nll": -aoe, "epoch": 200, "pedestrians": 7, "protocol": "fake"}
     (workdir / "eval" / f"{scene}-paper-test-e200.json").write_text(json.dumps(result))
 
 
@@ -57,3 +58,13 @@ def test_finished_runs_are_kept_as_records_that_outlive_their_work_directories(t
         path.unlink() if path.is_file() else path.rmdir()
     TABLE1["main"](argv)
     assert (tmp_path / "out" / "table1.json").read_text() == first
+
+
+def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
+    for k, scene in enumerate(("eth", "hotel", "univ", "zara1", "zara2")):
+        _fake_run(tmp_path / "runs", scene, 1000, 0.1 * (k + 1), [60.0], output="gaussian")
+    TABLE1["main"](["--output", "gaussian", "--runs", str(tmp_path / "runs"), "--workdir",
+                    str(tmp_path / "out")])
+    table = (tmp_path / "out" / "table1_p.md").read_text()
+    assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 1.10 | 2.22 | -0.10 | 0.50 / 1.00 |" in table
+    assert "| AVG | 0.300 | 0.600 | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.50 / 1.00 | | | |" in table
