@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gst_jax import cli, pretrained
+from gst_jax import cli, data, evaluate, pretrained
 from gst_jax.config import ETH_UCY_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.train import training_time_s
 
@@ -95,10 +95,14 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
     return run_scene_seed(runs, records, scene, protocol, output, epochs, seed, train=False)
 
 
-def summarize(scene: str, output: str, per_seed: list[dict], command: str) -> dict:
-    """One table row: mean over seeds; spread = std over seeds (one seed: over its 20 runs)."""
+def summarize(scene: str, output: str, per_seed: list[dict], command: str,
+              baseline: dict) -> dict:
+    """One table row: mean over seeds; spread = std over seeds (one seed: over its 20 runs).
+    baseline: `evaluate.constant_velocity_baseline` on the scene's test split, shown for every
+    scene, finished or not."""
     paper_aoe, paper_foe = PAPER[output][scene]
-    row = {"scene": scene, "paper_aoe": paper_aoe, "paper_foe": paper_foe, "command": command}
+    row = {"scene": scene, "paper_aoe": paper_aoe, "paper_foe": paper_foe, "command": command,
+           **baseline}
     if not per_seed:
         return row
     for name in ("aoe", "foe"):
@@ -109,9 +113,7 @@ def summarize(scene: str, output: str, per_seed: list[dict], command: str) -> di
     kde = [r.get("kde_nll") for r in per_seed]
     row.update(kde_nll=None if None in kde else float(np.mean(kde)),
                seeds=[r["seed"] for r in per_seed], spread_over="seeds" if len(per_seed) > 1
-               else "20 runs", cv_aoe=per_seed[0]["cv_aoe"], cv_foe=per_seed[0]["cv_foe"],
-               epoch=per_seed[0]["epoch"], pedestrians=per_seed[0]["pedestrians"],
-               protocol=per_seed[0]["protocol"],
+               else "20 runs", epoch=per_seed[0]["epoch"], protocol=per_seed[0]["protocol"],
                train_time_s=[r["train_time_s"] for r in per_seed],
                per_seed={str(r["seed"]): {"aoe": r["aoe"], "foe": r["foe"],
                                           "workdir": r["workdir"],
@@ -131,31 +133,35 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
              + ("KDE-NLL of the 20 samples (Trajectron++ rule; the paper gives only its "
                 "average, -1.98). " if gaussian else "")
              + "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
-             "(metrics.jsonl) on the machine that trained the run, per seed.", "",
+             "(metrics.jsonl) on the machine that trained the run, per seed."
+             + (" The paper did not report this protocol: its columns are its Table I (paper "
+                "split), for orientation only, not a like-for-like comparison." if protocol != "paper"
+                else ""), "",
              f"| scene | ours AOE | ours FOE | paper AOE | paper FOE |{kde_head} CV AOE / FOE | "
              "seeds | train time | command |",
              f"|---|---|---|---|---|{kde_rule}---|---|---|---|"]
     for r in rows:
         paper = f"{r['paper_aoe']:.2f} | {r['paper_foe']:.2f} |"
+        cv = f"{r['cv_aoe']:.2f} / {r['cv_foe']:.2f}"
         if "aoe" in r:
             minutes = ", ".join("?" if t is None else f"{t / 60:.0f}" for t in r["train_time_s"])
             kde = f" {r['kde_nll']:.2f} |" if gaussian else ""
             lines.append(
                 f"| {r['scene']} | {r['aoe']:.3f} ± {r['aoe_spread']:.3f} | "
-                f"{r['foe']:.3f} ± {r['foe_spread']:.3f} | {paper}{kde} "
-                f"{r['cv_aoe']:.2f} / {r['cv_foe']:.2f} | {', '.join(map(str, r['seeds']))} | "
-                f"{minutes} min | `{r['command']}` |")
+                f"{r['foe']:.3f} ± {r['foe_spread']:.3f} | {paper}{kde} {cv} | "
+                f"{', '.join(map(str, r['seeds']))} | {minutes} min | `{r['command']}` |")
         else:
             lines.append(f"| {r['scene']} | missing | missing | {paper}{' - |' if gaussian else ''}"
-                         f" - | - | - | `{r['command']}` |")
-    if all("aoe" in r for r in rows) and len(rows) == len(ETH_UCY_SCENES):
+                         f" {cv} | - | - | `{r['command']}` |")
+    if len(rows) == len(ETH_UCY_SCENES):
         mean = lambda k: sum(r[k] for r in rows) / len(rows)
-        kde = f" {mean('kde_nll'):.2f} (paper -1.98) |" if gaussian else ""
-        lines.append(f"| AVG | {mean('aoe'):.3f} | {mean('foe'):.3f} | {mean('paper_aoe'):.2f} | "
-                     f"{mean('paper_foe'):.2f} |{kde} {mean('cv_aoe'):.2f} / {mean('cv_foe'):.2f} "
-                     "| | | |")
-    else:
-        lines += ["", "No AVG row: not every scene has a finished run."]
+        finished = all("aoe" in r for r in rows)
+        ours = f"{mean('aoe'):.3f} | {mean('foe'):.3f}" if finished else "- | -"
+        kde = (f" {mean('kde_nll'):.2f} (paper -1.98) |" if finished else " - |") if gaussian else ""
+        lines.append(f"| AVG | {ours} | {mean('paper_aoe'):.2f} | {mean('paper_foe'):.2f} |{kde} "
+                     f"{mean('cv_aoe'):.2f} / {mean('cv_foe'):.2f} | | | |")
+        if not finished:
+            lines += ["", "No average of ours: not every scene has a finished run."]
     for r in rows:
         for seed, run in r.get("per_seed", {}).items():
             if run["workdir"].startswith("gst_jax/pretrained/"):
@@ -196,7 +202,9 @@ def main(argv: list[str] | None = None) -> None:
         seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
         command = " ".join(["python -m gst_jax.train", *train_flags(
             scene, args.protocol, args.output, args.epochs, seed_shown)])
-        rows.append(summarize(scene, args.output, per_seed, command))
+        baseline = evaluate.constant_velocity_baseline(
+            data.load_split(DataConfig(scene=scene, protocol=args.protocol), "test"))
+        rows.append(summarize(scene, args.output, per_seed, command, baseline))
     table = markdown(rows, args.output, args.protocol, args.epochs)
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (
         "_p" if args.output == "gaussian" else "")

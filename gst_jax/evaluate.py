@@ -73,12 +73,29 @@ def evaluate_params(params, model_config: ModelConfig, window_set, key: jax.Arra
         add("truth_collisions", np.sum(collisions))
         add("truth_pairs", np.sum(pairs))
         if with_baseline:
-            cv = metrics.constant_velocity(batch.positions[:, :obs_len],
-                                           batch.node_mask[:, :obs_len],
-                                           pred_len=model_config.pred_len)
-            for name, value in metrics.aoe_foe_sums(cv[None], truth, eval_mask).items():
+            for name, value in _constant_velocity_sums(batch, obs_len, eval_mask).items():
                 add("cv_" + name, value)
     return _summarize(totals, num_samples, with_kde, with_baseline)
+
+
+def constant_velocity_baseline(window_set, *, obs_len: int = 8) -> dict[str, Any]:
+    """The constant-velocity column of `evaluate_params` without a model: AOE/FOE on the
+    fully detected pedestrians of `window_set` (same windows, same pedestrians)."""
+    totals: dict[str, Any] = {}
+    for batch in data.evaluation_batches(window_set):
+        eval_mask = metrics.fully_detected_mask(batch.node_mask) * batch.scene_mask[:, None]
+        for name, value in _constant_velocity_sums(batch, obs_len, eval_mask).items():
+            totals[name] = totals.get(name, 0.0) + np.asarray(value, dtype=np.float64)
+    count = float(totals["count"])
+    return {"pedestrians": int(count), "cv_aoe": float(totals["aoe_sum"][0] / max(count, 1.0)),
+            "cv_foe": float(totals["foe_sum"][0] / max(count, 1.0))}
+
+
+def _constant_velocity_sums(batch, obs_len: int, eval_mask: np.ndarray) -> dict:
+    truth = np.asarray(batch.positions[:, obs_len:])                 # (B, P, N, 2)
+    cv = metrics.constant_velocity(batch.positions[:, :obs_len], batch.node_mask[:, :obs_len],
+                                   pred_len=truth.shape[1])
+    return metrics.aoe_foe_sums(cv[None], truth, eval_mask)
 
 
 def _summarize(totals: dict, num_samples: int, with_kde: bool, with_baseline: bool) -> dict:

@@ -39,9 +39,12 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
     assert eth["aoe_spread"] == shipped["aoe_std"] and eth["spread_over"] == "20 runs"
     assert "aoe" not in zara2
     table = (tmp_path / "out" / "table1.md").read_text()
-    assert "| zara2 | missing | missing | 0.32 | 0.70 |" in table
-    assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.21 | 0.38 |" in table
-    assert "No AVG row" in table
+    # Constant velocity is computed from the test split for every scene, finished or not; on
+    # eth it is what evaluate_params recorded beside the shipped model.
+    assert (eth["cv_aoe"], eth["cv_foe"]) == pytest.approx((shipped["cv_aoe"], shipped["cv_foe"]))
+    assert "| zara2 | missing | missing | 0.32 | 0.70 | 0.31 / 0.69 |" in table
+    assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.21 | 0.38 | 0.34 / 0.63 |" in table
+    assert "| AVG |" not in table                                  # three scenes, no average
 
 
 def test_finished_runs_are_kept_as_records_that_outlive_their_work_directories(tmp_path):
@@ -66,5 +69,17 @@ def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
     TABLE1["main"](["--output", "gaussian", "--runs", str(tmp_path / "runs"), "--workdir",
                     str(tmp_path / "out")])
     table = (tmp_path / "out" / "table1_p.md").read_text()
-    assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 1.10 | 2.22 | -0.10 | 0.50 / 1.00 |" in table
-    assert "| AVG | 0.300 | 0.600 | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.50 / 1.00 | | | |" in table
+    assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 1.10 | 2.22 | -0.10 | 0.97 / 2.12 |" in table
+    assert "| AVG | 0.300 | 0.600 | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.51 / 1.10 | | | |" in table
+
+
+def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_average_of_ours(
+        tmp_path):
+    TABLE1["main"](["--protocol", "loo", "--runs", str(tmp_path / "runs"), "--workdir",
+                    str(tmp_path / "out")])
+    rows = json.loads((tmp_path / "out" / "table1_loo.json").read_text())
+    assert [r["scene"] for r in rows] == ["eth", "hotel", "univ", "zara1", "zara2"]
+    assert all("aoe" not in r and r["cv_aoe"] > 0 and r["pedestrians"] > 0 for r in rows)
+    table = (tmp_path / "out" / "table1_loo.md").read_text()
+    assert "| AVG | - | - | 0.48 | 1.02 |" in table and "No average of ours" in table
+    assert "The paper did not report this protocol" in table
