@@ -10,7 +10,7 @@ Each (scene, seed) is the work directory of `python -m gst_jax.train --scene S -
 paper protocol (`python -m gst_jax.evaluate`, 20 runs). Every finished evaluation is also kept
 as a small record in <results>/runs/<run name>.json (committed), so the table survives the loss
 of the work directories. Scenes without a finished evaluation are listed as missing, never
-filled in. Writes <results>/table1[_loo][_p].md and .json.
+filled in. Writes <results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gst_jax import cli, data, evaluate, pretrained
+from gst_jax import cli, data, evaluate, figures, pretrained
 from gst_jax.config import ETH_UCY_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.train import training_time_s
 
@@ -205,11 +205,15 @@ def main(argv: list[str] | None = None) -> None:
         baseline = evaluate.constant_velocity_baseline(
             data.load_split(DataConfig(scene=scene, protocol=args.protocol), "test"))
         rows.append(summarize(scene, args.output, per_seed, command, baseline))
-    table = markdown(rows, args.output, args.protocol, args.epochs)
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (
         "_p" if args.output == "gaussian" else "")
     out = Path(args.workdir)
-    out.mkdir(parents=True, exist_ok=True)
+    figures.table1_against_paper(rows, out / f"{stem}.png", title=(
+        f"{'GST (P)' if args.output == 'gaussian' else 'GST (D)'}, {args.protocol} protocol, "
+        f"n = 1, ghost, {args.epochs} epochs, test split, 20 runs"),
+        paper_label="paper" if args.protocol == "paper" else "paper (its own split)")
+    table = (markdown(rows, args.output, args.protocol, args.epochs)
+             + f"\n![ours, the paper and constant velocity per scene]({stem}.png)\n")
     (out / f"{stem}.md").write_text(table)
     (out / f"{stem}.json").write_text(json.dumps(rows, indent=2) + "\n")
     print(json.dumps(rows, indent=2) if args.json else table)

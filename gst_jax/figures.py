@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Sequence
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -98,6 +99,35 @@ def best_n_per_dataset(all_results: Sequence[dict], path: Path) -> Path:
     ax.grid(axis="y", alpha=0.3)
     return _save(fig, path)
 
+
+
+def table1_against_paper(rows: Sequence[dict], path: Path, title: str,
+                         paper_label: str = "paper") -> Path:
+    """Grouped bars per scene, AOE and FOE: ours (± spread), the paper's, constant velocity.
+
+    rows: experiments/table1.py's rows; a scene without a finished run has no "ours" bar
+    and is marked "missing".
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(8.0, 2.8))
+    x = np.arange(len(rows))
+    width = 0.27
+    for ax, metric in zip(axes, ("aoe", "foe")):
+        ours = [r.get(metric, np.nan) for r in rows]
+        ax.bar(x - width, ours, width, yerr=[r.get(f"{metric}_spread", 0.0) for r in rows],
+               capsize=2, color="tab:blue", label="ours")
+        ax.bar(x, [r[f"paper_{metric}"] for r in rows], width, color="tab:gray", label=paper_label)
+        ax.bar(x + width, [r[f"cv_{metric}"] for r in rows], width, color="tab:orange",
+               label="constant velocity")
+        for i, r in enumerate(rows):
+            if metric not in r:
+                ax.text(x[i] - width, 0.02, "missing", rotation=90, fontsize=6,
+                        ha="center", va="bottom")
+        ax.set_xticks(x, [r["scene"] for r in rows])
+        ax.set_ylabel(f"{metric.upper()} (m)")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=8)
+    return _save(fig, path)
 
 # --- Seeing one prediction (the paper's Fig. 3) ------------------------------------------
 

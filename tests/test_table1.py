@@ -83,3 +83,4 @@ def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_averag
     table = (tmp_path / "out" / "table1_loo.md").read_text()
     assert "| AVG | - | - | 0.48 | 1.02 |" in table and "No average of ours" in table
     assert "The paper did not report this protocol" in table
+    assert (tmp_path / "out" / "table1_loo.png").stat().st_size > 10_000      # the bar figure
