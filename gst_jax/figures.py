@@ -100,7 +100,6 @@ def best_n_per_dataset(all_results: Sequence[dict], path: Path) -> Path:
     return _save(fig, path)
 
 
-
 def table1_against_paper(rows: Sequence[dict], path: Path, title: str,
                          paper_label: str = "paper") -> Path:
     """Grouped bars per scene, AOE and FOE: ours (± spread), the paper's, constant velocity.
@@ -128,6 +127,7 @@ def table1_against_paper(rows: Sequence[dict], path: Path, title: str,
     axes[0].legend(fontsize=7)
     fig.suptitle(title, fontsize=8)
     return _save(fig, path)
+
 
 # --- Seeing one prediction (the paper's Fig. 3) ------------------------------------------
 
