@@ -208,6 +208,7 @@ def main(argv: list[str] | None = None) -> None:
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (
         "_p" if args.output == "gaussian" else "")
     out = Path(args.workdir)
+    out.mkdir(parents=True, exist_ok=True)
     figures.table1_against_paper(rows, out / f"{stem}.png", title=(
         f"{'GST (P)' if args.output == 'gaussian' else 'GST (D)'}, {args.protocol} protocol, "
         f"n = 1, ghost, {args.epochs} epochs, test split, 20 runs"),
