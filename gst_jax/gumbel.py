@@ -1,4 +1,4 @@
-"""Gumbel-softmax sampling of edges, as in the release (MODEL.md 2.1 step 8).
+"""Gumbel-softmax sampling of edges, as in the release (docs/MODEL.md 2.1 step 8).
 
 Two twins: `sample_gumbel(key, shape)` draws the noise from an explicit key, and
 `gumbel_softmax(log_probs, noise, tau, hard)` consumes it; replaying recorded noise through

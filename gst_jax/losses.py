@@ -1,4 +1,4 @@
-"""Training losses of GST (D) and GST (P), per scene as in the release (MODEL.md section 3)."""
+"""Training losses of GST (D) and GST (P), per scene as in the release (docs/MODEL.md 3)."""
 
 from __future__ import annotations
 

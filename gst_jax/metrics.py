@@ -1,4 +1,4 @@
-"""Trajectory metrics (MODEL.md section 4), numpy only, as sums so batches can be accumulated.
+"""Trajectory metrics (docs/MODEL.md 4), numpy only, as sums so batches can be accumulated.
 
 Shapes: K samples, B scenes, P predicted steps, N pedestrian slots. `mask` (B, N) selects the
 pedestrians evaluated (fully detected, real scenes).

@@ -1,4 +1,4 @@
-"""Scene windows of partially detected pedestrians (MODEL.md section 1), numpy only."""
+"""Scene windows of partially detected pedestrians (docs/MODEL.md 1), numpy only."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ class Window:
         return self.start_frame, self.start_frame + (self.position_mask.shape[0] - 1) * self.frame_step
 
     def fully_detected(self) -> np.ndarray:
-        """(N_w,) bool: detected at every step (MODEL.md 1.8)."""
+        """(N_w,) bool: detected at every step (docs/MODEL.md 1.8)."""
         return self.position_mask.min(axis=0) > 0
 
 

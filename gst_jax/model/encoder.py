@@ -1,4 +1,4 @@
-"""Node Transformer Encoder layer (MODEL.md 2.2): attention over the sampled neighbours."""
+"""Node Transformer Encoder layer (docs/MODEL.md 2.2): attention over the sampled neighbours."""
 
 from __future__ import annotations
 

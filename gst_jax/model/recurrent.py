@@ -1,4 +1,4 @@
-"""Masked LSTM cell (MODEL.md 2.3) in PyTorch's gate order, so release weights convert."""
+"""Masked LSTM cell (docs/MODEL.md 2.3) in PyTorch's gate order, so release weights convert."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Edge Gumbel Selector (MODEL.md 2.1): each target samples at most n neighbours.
+"""Edge Gumbel Selector (docs/MODEL.md 2.1): each target samples at most n neighbours.
 
 The number of edge heads n is a traced value. The 128-wide q/k/v are split into
 G = config.head_slots groups of width 128/G; head h of an n-head model owns the G/n consecutive
