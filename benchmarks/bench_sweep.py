@@ -4,7 +4,7 @@
 
 Three ways to take the same optimiser steps for every configuration (wall time, compilation
 included, as a user would pay it):
-  vmapped     one `jit(vmap(train_step))` over the stacked members (gst_jax.sweep);
+  vmapped     one `jit(vmap(train_step))` over the stacked members (gst_jax.training.sweep);
   sequential  the same traced-n program (head slots for the largest n), one member at a time;
   separate    each configuration as its own single run (head slots = max(n, 1)), compiled
               for itself, one after another.
@@ -18,8 +18,10 @@ import time
 import jax
 
 from common import peak_rss_gib, print_table, record
-from gst_jax import data, sweep, train
+from gst_jax import cli, data
 from gst_jax.config import SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.training import members as sweep_members, state as train_state, sweep
+from gst_jax.training import step as train_step
 
 
 def timed_steps(step, state, batches, keys_for, hparams):
@@ -48,9 +50,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1000, help="first seed (default: 1000)")
     args = parser.parse_args()
 
-    members = sweep.plan_members(sweep.parse_edge_heads(args.edge_heads), "partial",
+    members = sweep_members.plan_members(cli.parse_edge_heads(args.edge_heads), "partial",
                                  [args.seed + i for i in range(args.seeds)])
-    config = sweep.sweep_model_config(ModelConfig(), members)
+    config = sweep_members.sweep_model_config(ModelConfig(), members)
     train_config = TrainConfig(seed=args.seed)
     window_set = data.load_split(DataConfig(scene=args.scene), "train")
     batches = list(data.training_batches(window_set, batch_size=16, seed=args.seed, epoch=1))
@@ -69,9 +71,9 @@ def main() -> None:
         compile_s = run_s = 0.0
         for member in members:
             alone = config_of(member)
-            c, r = timed_steps(step_of(alone), train.create_train_state(alone, key), batches,
+            c, r = timed_steps(step_of(alone), train_state.create_train_state(alone, key), batches,
                                lambda i: jax.random.fold_in(key, i),
-                               train.hparams_for_epoch(alone, train_config, 1))
+                               train_state.hparams_for_epoch(alone, train_config, 1))
             compile_s, run_s = compile_s + c, run_s + r
         return compile_s, run_s
 
@@ -79,12 +81,12 @@ def main() -> None:
         sweep.make_sweep_step(config), sweep.initial_states(config, members), batches,
         lambda i: jax.random.split(jax.random.fold_in(key, i), len(members)),
         sweep.member_hparams(config, train_config, members, 1)))
-    shared_step = jax.jit(train.make_train_step(config), donate_argnums=0)
+    shared_step = jax.jit(train_step.make_train_step(config), donate_argnums=0)
     way("sequential", lambda: one_after_another(
-        lambda m: sweep.member_config(config, m), lambda alone: shared_step))
+        lambda m: sweep_members.member_config(config, m), lambda alone: shared_step))
     way("separate", lambda: one_after_another(                      # head slots max(n, 1)
         lambda m: ModelConfig(num_edge_heads=m.edge_heads),
-        lambda alone: jax.jit(train.make_train_step(alone), donate_argnums=0)))
+        lambda alone: jax.jit(train_step.make_train_step(alone), donate_argnums=0)))
 
     for row in rows:
         row.update(record("sweep", scene=args.scene, members=len(members), steps=args.steps,

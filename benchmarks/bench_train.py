@@ -17,7 +17,9 @@ import jax
 
 from bench_peak import measure_peak_gflops
 from common import flops_of, peak_rss_gib, print_table, record
-from gst_jax import data, train
+from gst_jax import data
+from gst_jax.training.state import create_train_state, hparams_for_epoch
+from gst_jax.training.step import make_train_step
 from gst_jax.config import SCENES, DataConfig, ModelConfig, TrainConfig
 
 # The authors' release on this project's 2-core CPU (issue 5): seconds per training epoch.
@@ -39,9 +41,9 @@ def main() -> None:
     model_config = ModelConfig(num_edge_heads=args.edge_heads)
     train_config = TrainConfig(seed=args.seed)
     window_set = data.load_split(DataConfig(scene=args.scene, protocol=args.protocol), "train")
-    state = train.create_train_state(model_config, jax.random.key(args.seed))
-    step = jax.jit(train.make_train_step(model_config), donate_argnums=0)
-    hparams = train.hparams_for_epoch(model_config, train_config, 1)
+    state = create_train_state(model_config, jax.random.key(args.seed))
+    step = jax.jit(make_train_step(model_config), donate_argnums=0)
+    hparams = hparams_for_epoch(model_config, train_config, 1)
     key = jax.random.key(0)
 
     # Compile every bucket shape the timed epochs will meet, and read its cost.

@@ -12,18 +12,19 @@ import jax
 import numpy as np
 
 import gst_jax
+from gst_jax.runs import load_model
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--workdir", default=None,
-                        help="a trained run (default: untrained random parameters)")
+                        help="a trained run or pretrained:NAME (default: untrained random "
+                             "parameters)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampled futures")
     args = parser.parse_args()
 
     if args.workdir:
-        from gst_jax.evaluate import load_run
-        run = load_run(args.workdir)
+        run = load_model(args.workdir)
         config, params = run.model_config, run.params
     else:
         config = gst_jax.ModelConfig()

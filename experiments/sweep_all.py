@@ -15,8 +15,10 @@ import argparse
 import json
 from pathlib import Path
 
-from gst_jax import figures, sweep
+from gst_jax import cli, figures
 from gst_jax.config import SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.training.members import DETECTION, plan_members, sweep_model_config
+from gst_jax.training.sweep import fit_sweep, format_markdown
 
 
 def main() -> None:
@@ -24,10 +26,11 @@ def main() -> None:
     parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES,
                         help="datasets to sweep (default: all seven)")
     parser.add_argument("--protocol", default="paper", help="split protocol (default: paper)")
-    parser.add_argument("--edge-heads", default="0,1,2,4,8,16", help="n to sweep, 0 = full")
+    parser.add_argument("--edge-heads", default="0,1,2,4,8,16", type=cli.parse_edge_heads,
+                        help="n to sweep, 0 = full")
     parser.add_argument("--seeds", type=int, default=3, help="seeds per configuration (default: 3)")
     parser.add_argument("--seed", type=int, default=1000, help="first seed (default: 1000)")
-    parser.add_argument("--fully-detected-only", default="both", choices=tuple(sweep.DETECTION),
+    parser.add_argument("--fully-detected-only", default="both", choices=tuple(DETECTION),
                         help="detection modes to compare (default: both)")
     parser.add_argument("--epochs", type=int, default=200, help="epochs per sweep (budget)")
     parser.add_argument("--eval-samples", type=int, default=20, help="K per member (default: 20)")
@@ -37,25 +40,24 @@ def main() -> None:
     args = parser.parse_args()
 
     out = Path(args.workdir)
-    members = sweep.plan_members(sweep.parse_edge_heads(args.edge_heads),
-                                 args.fully_detected_only,
-                                 [args.seed + i for i in range(args.seeds)])
-    config = sweep.sweep_model_config(ModelConfig(), members)
+    members = plan_members(args.edge_heads, args.fully_detected_only,
+                           [args.seed + i for i in range(args.seeds)])
+    config = sweep_model_config(ModelConfig(), members)
     train_config = TrainConfig(epochs=args.epochs, seed=args.seed,
                                max_train_windows=args.max_train_windows)
     all_results = []
     for scene in args.scenes:
         print(f"== {scene}")
         data_config = DataConfig(scene=scene, protocol=args.protocol)
-        all_results.append(sweep.fit_sweep(config, data_config, train_config, members,
-                                           out / scene, eval_samples=args.eval_samples,
-                                           max_eval_windows=args.max_eval_windows))
+        all_results.append(fit_sweep(config, data_config, train_config, members, out / scene,
+                                     eval_samples=args.eval_samples,
+                                     max_eval_windows=args.max_eval_windows))
 
     figures.partial_vs_full_detection(all_results, out / "partial_vs_full.png")
     figures.sparse_gain_against_density(all_results, out / "sparse_gain_vs_density.png")
     figures.best_n_per_dataset(all_results, out / "best_n.png")
     (out / "results.json").write_text(json.dumps(all_results, indent=2) + "\n")
-    (out / "results.md").write_text("\n".join(sweep.format_markdown(r) for r in all_results))
+    (out / "results.md").write_text("\n".join(format_markdown(r) for r in all_results))
     print((out / "results.md").read_text())
     print(f"written under {out}: results.json, results.md, partial_vs_full.png, "
           "sparse_gain_vs_density.png, best_n.png")

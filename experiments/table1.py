@@ -23,11 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gst_jax import cli, data, evaluate, figures, pretrained
+from gst_jax import data, figures, pretrained
 from gst_jax.config import ETH_UCY_SCENES, DataConfig, ModelConfig, TrainConfig
-from gst_jax.train import training_time_s
+from gst_jax.evaluation import constant_velocity_baseline
+from gst_jax.runs import WorkDir, run_name
 
-# MODEL.md section 4: the paper's Table I (AOE / FOE in metres, fully detected pedestrians).
+# docs/MODEL.md 4: the paper's Table I (AOE / FOE in metres, fully detected pedestrians).
 PAPER = {
     "deterministic": {"eth": (0.96, 2.09), "hotel": (0.21, 0.38), "univ": (0.50, 1.08),
                       "zara1": (0.40, 0.86), "zara2": (0.32, 0.70)},
@@ -39,8 +40,8 @@ PAPER = {
 def workdir_of(runs: Path, scene: str, protocol: str, output: str, epochs: int,
                seed: int) -> Path:
     """The work directory `python -m gst_jax.train` picks for this run by default."""
-    return runs / cli.run_name(DataConfig(scene=scene, protocol=protocol),
-                               ModelConfig(output=output), TrainConfig(epochs=epochs, seed=seed))
+    return runs / run_name(DataConfig(scene=scene, protocol=protocol),
+                           ModelConfig(output=output), TrainConfig(epochs=epochs, seed=seed))
 
 
 def train_flags(scene: str, protocol: str, output: str, epochs: int,
@@ -48,11 +49,6 @@ def train_flags(scene: str, protocol: str, output: str, epochs: int,
     """The flags of `python -m gst_jax.train` for one run of the table."""
     return ["--scene", scene, "--protocol", protocol, "--output", output,
             "--epochs", str(epochs), "--seed", str(seed)]
-
-
-def final_evaluation(workdir: Path, scene: str, protocol: str, epochs: int) -> dict | None:
-    path = workdir / "eval" / f"{scene}-{protocol}-test-e{epochs}.json"
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 def shipped_record(scene: str, protocol: str, output: str, epochs: int,
@@ -76,9 +72,10 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
     the same command, else (if `train`) a new run."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
     record_path = records / f"{workdir.name}.json"
-    if (result := final_evaluation(workdir, scene, protocol, epochs)) is not None:
+    data_config = DataConfig(scene=scene, protocol=protocol)
+    if (result := WorkDir(workdir).read_evaluation(data_config, "test", epochs)) is not None:
         record = {**result, "seed": seed, "workdir": str(workdir),
-                  "train_time_s": training_time_s(workdir)}
+                  "train_time_s": WorkDir(workdir).training_time_s()}
         records.mkdir(parents=True, exist_ok=True)
         record_path.write_text(json.dumps(record, indent=2) + "\n")
         return record
@@ -98,7 +95,7 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
 def summarize(scene: str, output: str, per_seed: list[dict], command: str,
               baseline: dict) -> dict:
     """One table row: mean over seeds; spread = std over seeds (one seed: over its 20 runs).
-    baseline: `evaluate.constant_velocity_baseline` on the scene's test split, shown for every
+    baseline: `constant_velocity_baseline` on the scene's test split, shown for every
     scene, finished or not."""
     paper_aoe, paper_foe = PAPER[output][scene]
     row = {"scene": scene, "paper_aoe": paper_aoe, "paper_foe": paper_foe, "command": command,
@@ -202,7 +199,7 @@ def main(argv: list[str] | None = None) -> None:
         seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
         command = " ".join(["python -m gst_jax.train", *train_flags(
             scene, args.protocol, args.output, args.epochs, seed_shown)])
-        baseline = evaluate.constant_velocity_baseline(
+        baseline = constant_velocity_baseline(
             data.load_split(DataConfig(scene=scene, protocol=args.protocol), "test"))
         rows.append(summarize(scene, args.output, per_seed, command, baseline))
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (

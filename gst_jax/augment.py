@@ -1,8 +1,6 @@
-"""Training-time augmentation: a random rotation of every scene (MODEL.md section 3)."""
+"""Training-time augmentation: a random rotation of every scene (docs/MODEL.md 3)."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -20,4 +18,4 @@ def rotate(key: jax.Array, batch: SceneBatch) -> SceneBatch:
     cos, sin = jnp.cos(angle), jnp.sin(angle)
     rotation = jnp.stack([jnp.stack([cos, -sin], -1), jnp.stack([sin, cos], -1)], -2)  # (B, 2, 2)
     positions = jnp.einsum("bxy,btny->btnx", rotation, batch.positions)
-    return dataclasses.replace(batch, positions=positions)
+    return batch._replace(positions=positions)

@@ -1,44 +1,85 @@
-"""Flags shared by every command (`--scene`, `--protocol`, `--edge-heads`, `--epochs`,
-`--seed`, `--workdir`, `--json`, ...), so that each one means the same thing everywhere."""
+"""What every command shares: the flags (`--scene`, `--protocol`, `--edge-heads`, `--epochs`,
+`--seed`, `--workdir`, `--json`, ...), so that each means the same thing everywhere; their
+typed configs; and `run`, which turns the library's errors into one-line messages."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
+from typing import Callable
 
-from gst_jax.config import PROTOCOLS, SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import (EDGE_HEAD_CHOICES, OUTPUTS, PROTOCOLS, SCENES, TEMPORAL_MODELS,
+                            DataConfig, ModelConfig, TrainConfig)
+from gst_jax.data import DataError
+from gst_jax.runs import RunError
+from gst_jax.training.loop import NonFiniteError
+from gst_jax.training.members import DETECTION
 
 _TRAIN_DEFAULTS = TrainConfig()
+# Errors whose message is the whole story: a command prints it on one line and exits 1.
+USER_ERRORS = (DataError, RunError, NonFiniteError)
 
 
-def add_data_flags(parser: argparse.ArgumentParser) -> None:
+def parser(prog: str, doc: str) -> argparse.ArgumentParser:
+    """A command's parser, described by the first paragraph of its module docstring."""
+    return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.split("\n\n")[0],
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def run(command: Callable[[argparse.Namespace], None], parser: argparse.ArgumentParser,
+        argv: list[str] | None) -> None:
+    """Parse `argv` and run `command`; a user error ends the process with one line."""
+    args = parser.parse_args(argv)
+    try:
+        command(args)
+    except USER_ERRORS as error:
+        raise SystemExit(f"error: {error}") from None
+    except KeyboardInterrupt:
+        raise SystemExit("interrupted; rerun the same command to resume") from None
+
+
+def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False) -> None:
+    """--scene, --protocol, --data-dir. of_run: the defaults are those of the model's run."""
     group = parser.add_argument_group("data")
-    group.add_argument("--scene", default="eth", choices=SCENES,
-                       help="dataset: an ETH/UCY scene or a TrajNet++ crowd (default: eth)")
-    group.add_argument("--protocol", default="paper", choices=PROTOCOLS,
+    default = "the run's own" if of_run else None
+    group.add_argument("--scene", default=None if of_run else "eth", choices=SCENES,
+                       help="dataset: an ETH/UCY scene or a TrajNet++ crowd "
+                            f"(default: {default or 'eth'})")
+    group.add_argument("--protocol", default=None if of_run else "paper", choices=PROTOCOLS,
                        help="paper: the release's per-file temporal 80/20 split; paper-val: the "
                             "same with a validation set carved from the end of each file's "
-                            "train windows; loo: leave-one-scene-out (ETH/UCY only)")
+                            "train windows; loo: leave-one-scene-out (ETH/UCY only) "
+                            f"(default: {default or 'paper'})")
     group.add_argument("--data-dir", default=None,
-                       help="folder holding eth_ucy/ and trajnetpp/ (default: bundled data/)")
+                       help="folder holding eth_ucy/ and trajnetpp/ (default: "
+                            f"{default or 'the bundled data/'})")
 
 
-def add_model_flags(parser: argparse.ArgumentParser) -> None:
+def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
+    """--edge-heads (one n, or a comma-separated list for sweeps), --no-ghost, --output,
+    --temporal."""
     group = parser.add_argument_group("model")
-    group.add_argument("--edge-heads", type=int, default=1, choices=(0, 1, 2, 4, 8, 16),
-                       help="n, the most neighbours each pedestrian attends to "
-                            "(0 = full connection, no Gumbel selector; default: 1)")
+    if several_edge_heads:
+        group.add_argument("--edge-heads", default="0,1,2,4,8,16", type=parse_edge_heads,
+                           help="comma-separated n to sweep, 0 = full connection "
+                                "(default: 0,1,2,4,8,16)")
+    else:
+        group.add_argument("--edge-heads", type=int, default=1, choices=EDGE_HEAD_CHOICES,
+                           help="n, the most neighbours each pedestrian attends to "
+                                "(0 = full connection, no Gumbel selector; default: 1)")
     group.add_argument("--no-ghost", action="store_true",
                        help="disable the ghost agent (the 'attend to nobody' neighbour)")
-    group.add_argument("--output", default="deterministic", choices=("deterministic", "gaussian"),
+    group.add_argument("--output", default="deterministic", choices=OUTPUTS,
                        help="GST (D): displacements; GST (P): bivariate Gaussians (default: D)")
-    group.add_argument("--temporal", default="lstm", choices=("lstm", "tcn"),
+    group.add_argument("--temporal", default="lstm", choices=TEMPORAL_MODELS,
                        help="lstm: recurrent rollout, interacting at every predicted step "
                             "(paper); tcn: the release's temporal convolution readout of the "
                             "observed steps (default: lstm)")
 
 
-def add_train_flags(parser: argparse.ArgumentParser) -> None:
+def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> None:
+    """The schedule's flags. sweep: --seeds (a count) and a three-way --fully-detected-only."""
     group = parser.add_argument_group("training")
     d = _TRAIN_DEFAULTS
     group.add_argument("--epochs", type=int, default=d.epochs, help=f"epochs (default: {d.epochs})")
@@ -47,51 +88,71 @@ def add_train_flags(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--learning-rate", type=float, default=d.learning_rate,
                        help=f"initial Adam learning rate, x{d.lr_decay} every {d.lr_decay_every} "
                             f"epochs (default: {d.learning_rate})")
-    group.add_argument("--seed", type=int, default=d.seed, help=f"random seed (default: {d.seed})")
-    group.add_argument("--fully-detected-only", action="store_true",
-                       help="drop partially detected pedestrians (the paper's 'F' baseline)")
+    if sweep:
+        group.add_argument("--seed", type=int, default=d.seed,
+                           help=f"first seed; also fixes the shared data order (default: {d.seed})")
+        group.add_argument("--seeds", type=int, default=1,
+                           help="seeds per configuration: seed, seed+1, ... (default: 1)")
+        group.add_argument("--fully-detected-only", default="partial", choices=tuple(DETECTION),
+                           help="partial: observe everyone (paper default); full: only fully "
+                                "detected pedestrians (the paper's 'F'); both (default: partial)")
+    else:
+        group.add_argument("--seed", type=int, default=d.seed,
+                           help=f"random seed (default: {d.seed})")
+        group.add_argument("--fully-detected-only", action="store_true",
+                           help="drop partially detected pedestrians (the paper's 'F' baseline)")
+        group.add_argument("--eval-every", type=int, default=d.eval_every,
+                           help="epochs between validation AOE/FOE, with a protocol that has a "
+                                f"validation split (default: {d.eval_every}; 0 = never)")
     group.add_argument("--no-rotate", action="store_true", help="disable random rotation")
     group.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
                        help=f"epochs between checkpoints (default: {d.checkpoint_every})")
-    group.add_argument("--eval-every", type=int, default=d.eval_every,
-                       help="epochs between validation AOE/FOE, with a protocol that has a "
-                            f"validation split (default: {d.eval_every}; 0 = never)")
     group.add_argument("--max-train-windows", type=int, default=0,
                        help="train on the first k windows only (smoke tests; default: all)")
 
 
-def add_output_flags(parser: argparse.ArgumentParser, *, workdir_help: str) -> None:
-    parser.add_argument("--workdir", default=None, help=workdir_help)
+def add_output_flags(parser: argparse.ArgumentParser, *, workdir_help: str,
+                     workdir_default: str | None = None) -> None:
+    parser.add_argument("--workdir", default=workdir_default, help=workdir_help)
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
 
-def data_config(args: argparse.Namespace) -> DataConfig:
-    return DataConfig(scene=args.scene, protocol=args.protocol, data_dir=args.data_dir)
+def parse_edge_heads(text: str) -> list[int]:
+    """'0,1,4' -> [0, 1, 4], each among EDGE_HEAD_CHOICES (an argparse type)."""
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
+    choices = ",".join(map(str, EDGE_HEAD_CHOICES))
+    if not values or any(v not in EDGE_HEAD_CHOICES for v in values):
+        raise argparse.ArgumentTypeError(f"values must be among {choices}, got {text!r}")
+    return values
+
+
+def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> DataConfig:
+    """The flags' data config; flags left at None keep `base`'s values (a run's own)."""
+    base = base or DataConfig()
+    return dataclasses.replace(base, scene=args.scene or base.scene,
+                               protocol=args.protocol or base.protocol,
+                               data_dir=args.data_dir or base.data_dir)
 
 
 def model_config(args: argparse.Namespace) -> ModelConfig:
-    return ModelConfig(num_edge_heads=args.edge_heads, ghost=not args.no_ghost,
+    edge_heads = args.edge_heads if isinstance(args.edge_heads, int) else args.edge_heads[0]
+    return ModelConfig(num_edge_heads=edge_heads, ghost=not args.no_ghost,
                        output=args.output, temporal=args.temporal)
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:
-    return dataclasses.replace(
-        _TRAIN_DEFAULTS, epochs=args.epochs, batch_size=args.batch_size,
-        learning_rate=args.learning_rate, seed=args.seed,
-        fully_detected_only=args.fully_detected_only, rotate=not args.no_rotate,
-        checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-        max_train_windows=args.max_train_windows)
+    fields = dict(epochs=args.epochs, batch_size=args.batch_size,
+                  learning_rate=args.learning_rate, seed=args.seed, rotate=not args.no_rotate,
+                  checkpoint_every=args.checkpoint_every,
+                  max_train_windows=args.max_train_windows)
+    if isinstance(args.fully_detected_only, bool):        # a single run, not a sweep
+        fields.update(fully_detected_only=args.fully_detected_only, eval_every=args.eval_every)
+    return dataclasses.replace(_TRAIN_DEFAULTS, **fields)
 
 
-def run_name(data: DataConfig, model: ModelConfig, train: TrainConfig) -> str:
-    """A work directory name that identifies a run, so the same command finds it to resume."""
-    parts = [data.scene, data.protocol, "d" if model.output == "deterministic" else "p",
-             f"n{model.num_edge_heads}"]
-    if not model.ghost:
-        parts.append("noghost")
-    if model.temporal != "lstm":
-        parts.append(model.temporal)
-    if train.fully_detected_only:
-        parts.append("fd")
-    parts += [f"e{train.epochs}", f"seed{train.seed}"]
-    return "-".join(parts)
+def say(text: str) -> None:
+    """A status line for the user, on stderr (stdout is the result, e.g. --json)."""
+    print(text, file=sys.stderr)

@@ -13,6 +13,12 @@ from typing import Literal
 SCENES = ("eth", "hotel", "univ", "zara1", "zara2", "lcas", "wildtrack")
 ETH_UCY_SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
 PROTOCOLS = ("paper", "paper-val", "loo")
+OUTPUTS = ("deterministic", "gaussian")
+TEMPORAL_MODELS = ("lstm", "tcn")
+# n, the number of edge heads; 0 = full connection (the paper's "F", no selector).
+EDGE_HEAD_CHOICES = (0, 1, 2, 4, 8, 16)
+# Gumbel-softmax temperature of every evaluation and prediction (hard samples; docs/MODEL.md 4).
+EVAL_TAU = 0.03
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,7 +52,7 @@ class DataConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
-    """Shapes and structural switches of the Gumbel Social Transformer (MODEL.md section 2).
+    """Shapes and structural switches of the Gumbel Social Transformer (docs/MODEL.md 2).
 
     Attributes:
       node_dim: d, width of node embeddings and of the LSTM input (32).
@@ -89,8 +95,10 @@ class ModelConfig:
         if self.num_edge_heads and self.head_slots % self.num_edge_heads:
             raise ValueError(f"num_edge_heads {self.num_edge_heads} must divide max_edge_heads "
                              f"{self.max_edge_heads}")
-        if self.temporal not in ("lstm", "tcn"):
+        if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"temporal model {self.temporal!r}: expected 'lstm' or 'tcn'")
+        if self.output not in OUTPUTS:
+            raise ValueError(f"output {self.output!r}: expected 'deterministic' or 'gaussian'")
 
     @property
     def head_slots(self) -> int:
@@ -105,7 +113,7 @@ class ModelConfig:
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """The optimisation schedule (MODEL.md section 3; defaults are the release's).
+    """The optimisation schedule (docs/MODEL.md 3; defaults are the release's).
 
     Attributes:
       epochs: number of epochs (200).

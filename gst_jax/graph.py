@@ -6,17 +6,10 @@ the neighbour and i the target, as in the release (`A[t, j, i] = x_j - x_i`).
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 
-from gst_jax.data.batch import DATA_FIELDS, SceneBatch
-
-try:  # the data layer builds SceneBatch with numpy; here it becomes a jax pytree
-    jax.tree_util.register_dataclass(SceneBatch, data_fields=list(DATA_FIELDS), meta_fields=[])
-except ValueError:  # already registered (module reloaded)
-    pass
+from gst_jax.data.batch import SceneBatch
 
 # The release adds this to every normaliser so that fully masked rows give 0, not NaN.
 EPS = 1e-10
@@ -47,7 +40,7 @@ def edge_features(positions: jax.Array, node_mask: jax.Array) -> jax.Array:
 
 
 def fully_detected_mask(node_mask: jax.Array) -> jax.Array:
-    """1 for pedestrians valid at every step (MODEL.md 1.8).  (..., T, N) -> (..., N)."""
+    """1 for pedestrians valid at every step (docs/MODEL.md 1.8).  (..., T, N) -> (..., N)."""
     return jnp.min(node_mask, axis=-2)
 
 
@@ -67,7 +60,8 @@ def float_mask_attention_weights(scores: jax.Array, mask: jax.Array) -> jax.Arra
 
 
 def masked_categorical(logits: jax.Array, mask: jax.Array) -> jax.Array:
-    """Edge probabilities p = softmax(logits) restricted to valid edges (MODEL.md 2.1 step 7)."""
+    """Edge probabilities p = softmax(logits) restricted to valid edges (docs/MODEL.md 2.1
+    step 7)."""
     return float_mask_attention_weights(logits, mask)
 
 
@@ -75,6 +69,6 @@ def drop_partially_detected(batch: SceneBatch, enabled: jax.Array | bool) -> Sce
     """Remove partially detected pedestrians from every scene when `enabled` (may be traced):
     the paper's "F" baseline, which observes only pedestrians tracked for the whole window."""
     keep = jnp.where(enabled, fully_detected_mask(batch.node_mask), 1.0)[:, None, :]
-    return dataclasses.replace(batch, positions=batch.positions * keep[..., None],
+    return batch._replace(positions=batch.positions * keep[..., None],
                                position_mask=batch.position_mask * keep,
                                node_mask=batch.node_mask * keep)

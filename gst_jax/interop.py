@@ -178,7 +178,7 @@ def params_to_torch(params, *, num_edge_heads: int, config: ModelConfig | None =
 @functools.partial(jax.jit, static_argnames=("config", "hard", "return_attention"))
 def _replay(params, batch, noise, controls, *, config, hard, return_attention):
     """Loss and outputs of one replayed run. n and ghost are traced: one compile per shape."""
-    out = rollout_with_noise(params, config, batch, noise, controls, hard=hard,
+    out = rollout_with_noise(params, noise, batch, config, controls, hard=hard,
                              return_attention=return_attention)
     return losses.batch_loss(config, out, batch), out
 

@@ -4,8 +4,8 @@
     prediction = predict(params, key, batch)        # compiled once per batch shape
 
 Samples are a `vmap` over split keys; the observed steps' edge probabilities, which do not
-depend on the sample, are computed once. Evaluation protocol (MODEL.md 4): hard Gumbel samples
-at tau = 0.03, no dropout; GST (P) also samples its Gaussian.
+depend on the sample, are computed once. Evaluation protocol (docs/MODEL.md 4): hard Gumbel
+samples at tau = 0.03, no dropout; GST (P) also samples its Gaussian.
 """
 
 from __future__ import annotations
@@ -20,8 +20,6 @@ from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.model import Controls
 from gst_jax.rollout import observed_edge_probabilities, rollout
-
-EVAL_TAU = 0.03
 
 
 @flax.struct.dataclass
@@ -59,13 +57,13 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
     def predict(params, key: jax.Array, batch: SceneBatch,
                 controls: Controls | None = None) -> Prediction:
         if controls is None:
-            controls = Controls.make(EVAL_TAU, config.num_edge_heads, config.ghost)
+            controls = Controls.from_config(config)
 
         # The observed steps' edge probabilities do not depend on the sample: computed once.
-        observed_probs = observed_edge_probabilities(params, config, batch, controls)
+        observed_probs = observed_edge_probabilities(params, batch, config, controls)
 
         def one_sample(sample_key):
-            out = rollout(params, config, batch, sample_key, controls, hard=True,
+            out = rollout(params, sample_key, batch, config, controls, hard=True,
                           deterministic=True, observed_edge_probs=observed_probs)
             graph = (out.sampled_edges.sum(axis=-2), out.edge_probs) if with_graph else (None, None)
             return out.displacements, out.mu, out.sigma, out.corr, graph

@@ -1,4 +1,4 @@
-"""The recurrent rollout (MODEL.md 2.3): observe 8 steps at once, then scan 12 predictions.
+"""The recurrent rollout (docs/MODEL.md 2.3): observe 8 steps at once, then scan 12 predictions.
 
 Observation: the selector and encoder run on all observed steps in one call, and the masked
 LSTM folds them with `lax.scan`. Prediction: a `lax.scan` over the remaining steps whose
@@ -12,7 +12,7 @@ to replay the release's Gumbel and normal draws in the parity tests); both share
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import flax
 import jax
@@ -65,7 +65,7 @@ class RolloutOutput:
     attention: Any = None
 
 
-def rollout(params, config: ModelConfig, batch: SceneBatch, key: jax.Array, controls: Controls,
+def rollout(params, key: jax.Array, batch: SceneBatch, config: ModelConfig, controls: Controls,
             *, hard: bool, deterministic: bool, return_attention: bool = False,
             observed_edge_probs: jax.Array | None = None) -> RolloutOutput:
     """Predict `config.pred_len` steps for every pedestrian of `batch`, drawing noise from `key`.
@@ -73,12 +73,12 @@ def rollout(params, config: ModelConfig, batch: SceneBatch, key: jax.Array, cont
     `observed_edge_probs` (from `observed_edge_probabilities`, deterministic rollouts only)
     skips the observation pass's edge selector, so that samples share it.
     """
-    return _rollout(params, config, batch, controls, key, None, hard=hard,
+    return _rollout(params, key, None, batch, config, controls, hard=hard,
                     deterministic=deterministic, return_attention=return_attention,
                     observed_edge_probs=observed_edge_probs)
 
 
-def observed_edge_probabilities(params, config: ModelConfig, batch: SceneBatch,
+def observed_edge_probabilities(params, batch: SceneBatch, config: ModelConfig,
                                 controls: Controls) -> jax.Array:
     """Edge probabilities of the observed steps without dropout, (B, T_obs, N, G, N+1).
 
@@ -98,13 +98,13 @@ def _observed_inputs(batch: SceneBatch, obs_len: int):
             node_mask)
 
 
-def rollout_with_noise(params, config: ModelConfig, batch: SceneBatch, noise: RolloutNoise,
+def rollout_with_noise(params, noise: RolloutNoise, batch: SceneBatch, config: ModelConfig,
                        controls: Controls, *, hard: bool, deterministic: bool = True,
                        dropout_key: jax.Array | None = None,
                        return_attention: bool = False) -> RolloutOutput:
     """Like `rollout`, but replaying recorded noise (dropout, if on, still uses a key)."""
     key = jax.random.key(0) if dropout_key is None else dropout_key
-    return _rollout(params, config, batch, controls, key, noise, hard=hard,
+    return _rollout(params, key, noise, batch, config, controls, hard=hard,
                     deterministic=deterministic, return_attention=return_attention)
 
 
@@ -117,8 +117,33 @@ def sample_displacement(mu: jax.Array, sigma: jax.Array, corr: jax.Array,
     return mu + jnp.stack([dx, dy], axis=-1)
 
 
-def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
-             key: jax.Array, recorded: RolloutNoise | None, *, hard: bool, deterministic: bool,
+class RolloutKeys(NamedTuple):
+    """The keys of one rollout, split once by purpose."""
+
+    gumbel_obs: jax.Array     # Gumbel noise of the observation call
+    dropout_obs: jax.Array    # dropout of the observation call
+    normal: jax.Array         # GST (P)'s standard normals, all predicted steps
+    steps: jax.Array          # the prediction steps' keys (split once more per step)
+
+    @classmethod
+    def split(cls, key: jax.Array) -> "RolloutKeys":
+        rest, gumbel_obs, dropout_obs = jax.random.split(key, 3)
+        steps, normal = jax.random.split(rest)
+        return cls(gumbel_obs, dropout_obs, normal, steps)
+
+
+class PredictionCarry(NamedTuple):
+    """What one prediction step hands to the next. B scenes, N pedestrians."""
+
+    hidden: jax.Array         # (B, N, H) LSTM state
+    cell: jax.Array           # (B, N, H)
+    delta: jax.Array          # (B, N, 2) the last predicted displacement
+    edges: jax.Array          # (B, N, N, 2) relative positions A[j, i], evolved by the deltas
+    key: jax.Array
+
+
+def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: SceneBatch,
+             config: ModelConfig, controls: Controls, *, hard: bool, deterministic: bool,
              return_attention: bool, observed_edge_probs: jax.Array | None = None
              ) -> RolloutOutput:
     model = GST(config)
@@ -126,6 +151,7 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
     batch_size, _, num_nodes = batch.node_mask.shape
     noise_shape = (batch_size, num_nodes, config.head_slots, num_nodes + 1)
     gaussian = config.output == "gaussian"
+    keys = RolloutKeys.split(key)
 
     def apply(method, *args, key=None, **kwargs):
         rngs = None if deterministic or key is None else {"dropout": key}
@@ -137,24 +163,20 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
 
     # --- Observation: one selector/encoder call over all observed steps.
     node_features, edge_features, node_mask = _observed_inputs(batch, obs_len)
-    key, obs_key, dropout_key = jax.random.split(key, 3)
     if recorded is None:
-        gumbel_obs = sample_gumbel(obs_key, (batch_size, obs_len) + noise_shape[1:])
+        gumbel_obs = sample_gumbel(keys.gumbel_obs, (batch_size, obs_len) + noise_shape[1:])
+        normal = jax.random.normal(keys.normal, (pred_len, batch_size, num_nodes, 2))
     else:
-        gumbel_obs = recorded.gumbel_obs
+        gumbel_obs, normal = recorded.gumbel_obs, recorded.normal
     encoded, obs_probs, obs_sampled, obs_attention = apply(
         GST.interact, node_features, edge_features, node_mask, gumbel_obs, controls,
-        hard=hard, deterministic=deterministic, key=dropout_key, edge_probs=observed_edge_probs)
+        hard=hard, deterministic=deterministic, key=keys.dropout_obs,
+        edge_probs=observed_edge_probs)
     keep = graph.keep_mask(batch.node_mask, obs_len)                            # (B, N)
-    if recorded is None:
-        key, normal_key = jax.random.split(key)
-        normal = jax.random.normal(normal_key, (pred_len, batch_size, num_nodes, 2))
-    else:
-        normal = recorded.normal
 
     if config.temporal == "tcn":
         # Readout: every predicted step from the observed encodings; no further interaction.
-        key, dropout_key = jax.random.split(key)
+        _, dropout_key = jax.random.split(keys.steps)
         observed = encoded * node_mask[..., None] * keep[:, None, :, None]
         mu, sigma, corr = apply(GST.convolve, observed, deterministic=deterministic,
                                 key=dropout_key)
@@ -176,31 +198,31 @@ def _rollout(params, config: ModelConfig, batch: SceneBatch, controls: Controls,
     mu, sigma, corr = apply(GST.readout, hidden)
     delta = draw(mu, sigma, corr, normal[0], keep)
 
-    def predict_step(carry, recorded_step):
-        hidden, cell, delta, edges, key = carry
-        key, gumbel_key, dropout_key = jax.random.split(key, 3)
+    def predict_step(carry: PredictionCarry, recorded_step):
+        key, gumbel_key, dropout_key = jax.random.split(carry.key, 3)
         gumbel, normal = recorded_step
         if gumbel is None:
             gumbel = sample_gumbel(gumbel_key, noise_shape)
         # Sampled displacements feed back detached (the release's `detach_sample`).
-        fed_back = jax.lax.stop_gradient(delta) if gaussian else delta
-        edges = edges + fed_back[..., :, None, :] - fed_back[..., None, :, :]
+        fed_back = jax.lax.stop_gradient(carry.delta) if gaussian else carry.delta
+        edges = carry.edges + fed_back[..., :, None, :] - fed_back[..., None, :, :]
         encoded, probs, sampled, attention = apply(
             GST.interact, fed_back, edges, keep, gumbel, controls, hard=hard,
             deterministic=deterministic, key=dropout_key)
-        hidden, cell = apply(GST.recur, encoded * keep[..., None], (hidden, cell), keep)
+        hidden, cell = apply(GST.recur, encoded * keep[..., None], (carry.hidden, carry.cell),
+                             keep)
         mu, sigma, corr = apply(GST.readout, hidden)
         delta = draw(mu, sigma, corr, normal, keep)
         outputs = (delta, mu, sigma, corr, probs, sampled,
                    attention if return_attention else None)
-        return (hidden, cell, delta, edges, key), outputs
+        return PredictionCarry(hidden, cell, delta, edges, key), outputs
 
     # Rematerialised in the backward pass: storing each step's selector activations,
     # (B, N, L, 128) per step, costs more memory traffic than recomputing them (eth training
     # step 9.0 -> 7.8 s per epoch on the 2-core CPU; benchmarks/README.md).
     predict_step = jax.checkpoint(predict_step)
     step_noise = (None if recorded is None else recorded.gumbel_pred, normal[1:])
-    carry = (hidden, cell, delta, edge_features[:, -1], key)
+    carry = PredictionCarry(hidden, cell, delta, edge_features[:, -1], keys.steps)
     _, (deltas, mus, sigmas, corrs, probs, sampled, attention) = jax.lax.scan(
         predict_step, carry, step_noise, length=pred_len - 1)
 

@@ -15,6 +15,7 @@ from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch, node_mask_from_positions
 from gst_jax.gumbel import gumbel_softmax, sample_gumbel
 from gst_jax.model import Controls, init_params
+from gst_jax.model.layers import Dropout
 from gst_jax.rollout import RolloutNoise, rollout, rollout_with_noise
 
 CONFIG = ModelConfig(num_edge_heads=4, max_edge_heads=16)
@@ -89,7 +90,7 @@ def run(params, batch, noise, *, hard=True, tau=0.5, config=CONFIG, n=None):
 @functools.partial(jax.jit, static_argnums=(4, 5))
 def _jitted_rollout(params, batch, noise, controls, hard, config):
     # One compile per (shape, hard, config): tau and n are traced, as in training.
-    return rollout_with_noise(params, config, batch, noise, controls, hard=hard,
+    return rollout_with_noise(params, noise, batch, config, controls, hard=hard,
                               return_attention=True)
 
 
@@ -184,7 +185,7 @@ def test_same_key_same_output_different_key_different_edges(params, walk):
     positions, mask = walk
     batch = scene_batch(positions, mask)
     controls = Controls.make(0.5, 4, True)
-    go = jax.jit(lambda key: rollout(params, CONFIG, batch, key, controls, hard=True,
+    go = jax.jit(lambda key: rollout(params, key, batch, CONFIG, controls, hard=True,
                                      deterministic=True))
     a, b, c = go(jax.random.key(1)), go(jax.random.key(1)), go(jax.random.key(2))
     np.testing.assert_array_equal(a.displacements, b.displacements)
@@ -201,7 +202,7 @@ def test_traced_n_matches_a_program_built_for_that_n(params, walk):
 
     def one(n):
         controls = Controls(tau=jnp.float32(0.5), num_edge_heads=n, ghost=jnp.bool_(True))
-        return rollout_with_noise(params, CONFIG, batch, noise, controls, hard=False).displacements
+        return rollout_with_noise(params, noise, batch, CONFIG, controls, hard=False).displacements
 
     swept = jax.jit(jax.vmap(one))(heads)
     for k, n in enumerate([0, 1, 2, 4]):
@@ -240,8 +241,6 @@ def test_tcn_readout_predicts_from_observations_only_without_nan(walk):
 
 
 def test_hash_dropout_is_bernoulli_with_independent_masks_per_key():
-    from gst_jax.model.layers import Dropout
-
     dropout = Dropout(0.1)
     x = jnp.ones((64, 50, 128))
     apply = jax.jit(lambda key: dropout.apply({}, x, deterministic=False, rngs={"dropout": key}))

@@ -7,18 +7,19 @@ import json
 import jax
 import pytest
 
-from gst_jax import plot, train
-from gst_jax.checkpoints import Checkpointer
+from gst_jax import plot
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.runs import WorkDir, run_config
+from gst_jax.training.state import create_train_state
 
 
 @pytest.fixture(scope="module")
 def random_run(tmp_path_factory):
     workdir = tmp_path_factory.mktemp("run")
     model, data_config, train_config = ModelConfig(), DataConfig(scene="zara1"), TrainConfig()
-    state = train.create_train_state(model, jax.random.key(0))
-    checkpointer = Checkpointer(workdir)
-    checkpointer.save(1, state, train.run_config(model, data_config, train_config))
+    state = create_train_state(model, jax.random.key(0))
+    checkpointer = WorkDir(workdir).checkpointer()
+    checkpointer.save(1, state, run_config(model, data_config, train_config))
     checkpointer.close()
     (workdir / "metrics.jsonl").write_text("".join(
         json.dumps({"epoch": e, "loss": 2.0 / e, "val_aoe": 1.0 / e, "val_foe": 2.0 / e}) + "\n"

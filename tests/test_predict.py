@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import chex
 import jax
 import numpy as np
 
 import gst_jax
+from gst_jax.compiles import count_compiles
 from gst_jax.model import Controls
-from gst_jax.predict import EVAL_TAU
 from gst_jax.rollout import rollout
 
 CONFIG = gst_jax.ModelConfig()
@@ -54,8 +53,8 @@ def test_samples_share_the_observation_pass_without_changing_them():
     batch = gst_jax.make_batch(observations(6))
     key = jax.random.key(3)
     prediction = gst_jax.make_predict(config, num_samples=K)(params, key, batch)
-    controls = Controls.make(EVAL_TAU, config.num_edge_heads, config.ghost)
-    alone_rollout = jax.jit(lambda sample_key: rollout(params, config, batch, sample_key,
+    controls = Controls.from_config(config)
+    alone_rollout = jax.jit(lambda sample_key: rollout(params, sample_key, batch, config,
                                                        controls, hard=True, deterministic=True))
     for k, sample_key in enumerate(jax.random.split(key, K)):
         alone = alone_rollout(sample_key)
@@ -66,11 +65,20 @@ def test_samples_share_the_observation_pass_without_changing_them():
 def test_predict_compiles_once_per_bucket():
     params = gst_jax.init_params(CONFIG, jax.random.key(0))
     predict = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False)
-    counted = jax.jit(chex.assert_max_traces(predict.__wrapped__, n=2))
-    for num_pedestrians, seed in [(3, 0), (5, 1), (8, 2), (9, 3), (12, 4)]:   # buckets 8 and 16
-        batch = gst_jax.make_batch(observations(num_pedestrians, seed))
-        out = counted(params, jax.random.key(seed), batch)
-        assert out.positions.shape[3] == (8 if num_pedestrians <= 8 else 16)
-    for num_pedestrians in (3, 7, 12):
-        predict(params, jax.random.key(0), gst_jax.make_batch(observations(num_pedestrians)))
-    assert predict._cache_size() == 2
+    keys = [jax.random.key(seed) for seed in range(5)]
+
+    def run(num_pedestrians: int, seed: int):
+        out = predict(params, keys[seed], gst_jax.make_batch(observations(num_pedestrians, seed)))
+        return jax.block_until_ready(out)
+
+    with count_compiles() as first_two_buckets:
+        assert run(3, 0).positions.shape[3] == 8
+        assert run(9, 1).positions.shape[3] == 16
+    assert first_two_buckets.count >= 2
+    with count_compiles() as same_buckets:                     # buckets 8 and 16 again
+        for num_pedestrians, seed in [(5, 2), (8, 3), (12, 4), (3, 0), (16, 1)]:
+            run(num_pedestrians, seed)
+    assert same_buckets.count == 0
+    with count_compiles() as new_bucket:                       # the counter sees a new shape
+        assert run(20, 2).positions.shape[3] == 24
+    assert new_bucket.count >= 1

@@ -16,6 +16,7 @@ from gst_jax.config import ModelConfig
 from gst_jax.data.batch import SceneBatch
 from gst_jax.model import Controls, init_params
 from gst_jax.rollout import rollout
+from gst_jax.simulate.__main__ import main as simulate_main
 
 
 @pytest.mark.parametrize("name", list(simulate.SCENARIOS))
@@ -37,7 +38,7 @@ def test_constant_velocity_model_moves_every_agent_in_a_straight_line():
     steps = np.arange(scenario.steps + 1)[:, None, None]
     expected = scenario.start[None] + scenario.velocity[None] * simulate.DT * steps
     np.testing.assert_allclose(positions, expected, atol=1e-4)
-    result = simulate.measures(positions, scenario)
+    result = simulate.robot_measures(positions, scenario)
     assert not result["freezing_or_u_turn"] and abs(result["path_length_ratio"] - 1) < 1e-4
 
 
@@ -68,14 +69,14 @@ def test_gst_drives_the_loop_without_nan():
                        position_mask=np.repeat([1.0, 0.0], [8, 12])[None, :, None] * np.ones(2),
                        node_mask=np.repeat([1.0, 0.0], [8, 12])[None, :, None] * np.ones(2),
                        scene_mask=np.ones(1), window_index=np.zeros(1, np.int32))
-    full = rollout(params, config, batch, jax.random.key(2), Controls.make(0.03, 1, True),
+    full = rollout(params, jax.random.key(2), batch, config, Controls.make(0.03, 1, True),
                    hard=True, deterministic=True)
     np.testing.assert_allclose(model(history, np.ones((8, 2)), jax.random.key(2)),
                                full.displacements[0, 0], atol=1e-6)
 
 
 def test_command_runs_a_shipped_model_and_writes_measures_and_figures(tmp_path, capsys):
-    simulate.main(["pretrained:eth", "--scenario", "a", "--animate", "--workdir", str(tmp_path),
+    simulate_main(["pretrained:eth", "--scenario", "a", "--animate", "--workdir", str(tmp_path),
                    "--json"])
     rows = json.loads((tmp_path / "results.json").read_text())
     assert [row["model"] for row in rows] == ["constant velocity", "pretrained:eth n=1"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 
 import chex
@@ -9,33 +10,68 @@ import jax
 import numpy as np
 import pytest
 
-from gst_jax import data, sweep, train
-from gst_jax.checkpoints import Checkpointer
+from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.graph import drop_partially_detected
 from gst_jax.model import Controls
 from gst_jax.rollout import rollout
+from gst_jax.runs import RunError, WorkDir, load_member
+from gst_jax.training import members as sweep_members, sweep
+from gst_jax.training.loop import Progress
+from gst_jax.training.state import create_train_state, hparams_for_epoch
+from gst_jax.training.step import make_train_step
+
+
+class _Crash(Exception):
+    pass
+
+
+class _CrashAfterEpoch(Progress):
+    """Progress that raises once the line of `epoch` is shown (its metrics are written)."""
+
+    def __init__(self, epoch: int, stream):
+        super().__init__(stream)
+        self.epoch = epoch
+
+    def line(self, text: str) -> None:
+        super().line(text)
+        if text.startswith(f"epoch {self.epoch} "):
+            raise _Crash
 
 
 def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_path):
-    members = [sweep.Member(0, False, 3), sweep.Member(2, True, 4)]  # n, F switch, seed differ
-    config = sweep.sweep_model_config(ModelConfig(), members)
+    members = [sweep_members.Member(0, False, 3), sweep_members.Member(2, True, 4)]  # n, F, seed
+    config = sweep_members.sweep_model_config(ModelConfig(), members)
     data_config = DataConfig(scene="zara1")
-    train_config = TrainConfig(epochs=2, batch_size=2, seed=3, checkpoint_every=1,
+    train_config = TrainConfig(epochs=4, batch_size=2, seed=3, checkpoint_every=2,
                                max_train_windows=4)
+    # A crash after epoch 3's metrics line, whose last checkpoint is epoch 2.
+    with pytest.raises(_Crash):
+        sweep.fit_sweep(config, data_config, train_config, members, tmp_path,
+                        progress=_CrashAfterEpoch(3, io.StringIO()))
+    assert [r["epoch"] for r in WorkDir(tmp_path).read_metrics()] == [1, 2, 3]
+    log = io.StringIO()
     results = sweep.fit_sweep(config, data_config, train_config, members, tmp_path,
-                              eval_samples=2, max_eval_windows=3)
+                              eval_samples=2, max_eval_windows=3, progress=Progress(log))
+    # The resumed sweep writes every epoch once, and shows progress as training does.
+    assert [r["epoch"] for r in WorkDir(tmp_path).read_metrics()] == [1, 2, 3, 4]
+    shown = log.getvalue()
+    assert f"resuming {tmp_path} after epoch 2" in shown
+    assert "epoch 3 loss" in shown and "epoch 4 loss" in shown
+    assert f"{members[1].name}: AOE" in shown and "(2/2 evaluated)" in shown
 
-    stacked = Checkpointer(tmp_path).restore(sweep.initial_states(config, members))[0]
+    checkpointer = WorkDir(tmp_path).checkpointer(create=False)
+    stacked = checkpointer.restore(sweep.initial_states(config, members))[0]
+    checkpointer.close()
     train_set = data.load_split(data_config, "train").subset(range(4))
-    single_step = jax.jit(train.make_train_step(config))
+    single_step = jax.jit(make_train_step(config))
     for k, member in enumerate(members):
-        alone = sweep.member_config(config, member)
-        state = train.create_train_state(alone, jax.random.fold_in(jax.random.key(member.seed), 0))
+        alone = sweep_members.member_config(config, member)
+        state = create_train_state(alone, jax.random.fold_in(jax.random.key(member.seed), 0))
         epoch_losses = []
-        for epoch in (1, 2):
-            hparams = train.hparams_for_epoch(alone, train_config, epoch,
-                                              fully_detected_only=member.fully_detected_only)
+        for epoch in range(1, train_config.epochs + 1):
+            hparams = hparams_for_epoch(alone, train_config, epoch,
+                                        fully_detected_only=member.fully_detected_only)
             epoch_key = jax.random.fold_in(jax.random.key(member.seed), epoch)
             losses = []
             for step, batch in enumerate(data.training_batches(
@@ -51,19 +87,19 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
         # (e.g. attention key biases: softmax ignores a per-row constant), Adam's normalisation
         # turns that float noise into full-size steps along directions that change no output.
         # So the members are compared by what they predict, and their parameters only to
-        # well within the 4 x lr that 4 Adam steps can move them.
-        theirs = sweep.unstack(stacked.params, k)
+        # well within the 8 x lr that 8 Adam steps can move them.
+        theirs = sweep_members.unstack(stacked.params, k)
         controls = Controls.make(0.5, member.edge_heads, True)
         batch = drop_partially_detected(next(iter(data.training_batches(train_set, batch_size=4))),
                                         member.fully_detected_only)
-        predictions = [rollout(p, config, batch, jax.random.key(5), controls, hard=False,
+        predictions = [rollout(p, jax.random.key(5), batch, config, controls, hard=False,
                                deterministic=True).displacements for p in (state.params, theirs)]
         np.testing.assert_allclose(*predictions, rtol=1e-4, atol=1e-5)
         differences = np.concatenate([np.abs(np.ravel(a - b)) for a, b in zip(
             jax.tree.leaves(state.params), jax.tree.leaves(theirs))])
         assert np.median(differences) < 1e-6 and np.mean(differences > 1e-4) < 0.01
     # The members really differ (the comparisons above would not notice a shared state).
-    first, second = (sweep.unstack(stacked.params, k) for k in (0, 1))
+    first, second = (sweep_members.unstack(stacked.params, k) for k in (0, 1))
     assert max(float(np.abs(a - b).max()) for a, b in zip(jax.tree.leaves(first),
                                                           jax.tree.leaves(second))) > 1e-2
 
@@ -75,11 +111,11 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
     assert (tmp_path / "aoe_foe_vs_n.png").stat().st_size > 10_000
 
     # A member read back as a single run (what `simulate SWEEP_DIR:MEMBER` uses).
-    run = sweep.load_member(tmp_path, members[1].name)
+    run = load_member(tmp_path, members[1].name)
     assert (run.model_config.num_edge_heads, run.train_config.fully_detected_only) == (2, True)
     chex.assert_trees_all_equal(run.params, second)
-    with pytest.raises(SystemExit, match="no member 'n9-partial-seed1'"):
-        sweep.load_member(tmp_path, "n9-partial-seed1")
+    with pytest.raises(RunError, match="no member 'n9-partial-seed1'"):
+        load_member(tmp_path, "n9-partial-seed1")
 
 
 def _fake_evaluations(aoe_by_member: dict) -> tuple[list, list]:
@@ -93,7 +129,7 @@ def test_summary_quantities_and_cross_dataset_figures(tmp_path):
     """Best n, sparse-vs-full and partial-vs-full improvements from hand-made AOEs."""
     from gst_jax import figures
 
-    M = sweep.Member
+    M = sweep_members.Member
     all_results = []
     for scene, best in (("zara1", 0.4), ("hotel", 0.2)):
         members, evaluations = _fake_evaluations({

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -15,26 +13,44 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import data, train
+from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.runs import load_run
+from gst_jax.training.loop import NonFiniteError, fit
+from gst_jax.training.state import create_train_state, hparams_for_epoch
+from gst_jax.training.step import make_train_step
 
 MODEL = ModelConfig()
 TINY_RUN = ["--scene", "zara1", "--epochs", "3", "--batch-size", "8", "--max-train-windows",
             "24", "--checkpoint-every", "1"]
 
 
-def _env(tmp_path: Path, **extra: str) -> dict:
-    env = dict(os.environ)
-    # The three processes of the resume test share compiled programs through this cache.
-    env.update(JAX_COMPILATION_CACHE_DIR=str(tmp_path.parent / "jax_cache"),
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", **extra)
-    return env
+# `python -m gst_jax.train` that SIGKILLs itself after `kill_after` optimiser steps.
+_KILLED_TRAIN = """
+import os, signal, sys
+from gst_jax import train
+from gst_jax.training import loop
+
+steps = 0
+report_step = loop.Progress.step
+
+def step_then_die(self, *args):
+    global steps
+    report_step(self, *args)
+    steps += 1
+    if steps >= {kill_after}:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+loop.Progress.step = step_then_die
+train.main(sys.argv[1:])
+"""
 
 
-def _train(tmp_path: Path, workdir: Path, **env: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "gst_jax.train", *TINY_RUN, "--workdir",
-                           str(workdir)], env=_env(tmp_path, **env), capture_output=True,
-                          text=True, timeout=600)
+def _train(workdir: Path, kill_after: int = 0) -> subprocess.CompletedProcess:
+    command = (["-c", _KILLED_TRAIN.format(kill_after=kill_after)] if kill_after
+               else ["-m", "gst_jax.train"])
+    return subprocess.run([sys.executable, *command, *TINY_RUN, "--workdir", str(workdir)],
+                          capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")
@@ -46,16 +62,16 @@ def fixed_batch():
 
 def test_schedule_matches_release():
     config = TrainConfig()
-    lrs = [float(train.hparams_for_epoch(MODEL, config, e).learning_rate) for e in (1, 50, 51, 101, 200)]
+    lrs = [float(hparams_for_epoch(MODEL, config, e).learning_rate) for e in (1, 50, 51, 101, 200)]
     np.testing.assert_allclose(lrs, [1e-3, 1e-3, 3e-4, 9e-5, 2.7e-5], rtol=1e-5)
-    taus = [float(train.hparams_for_epoch(MODEL, config, e).tau) for e in (1, 100, 200)]
+    taus = [float(hparams_for_epoch(MODEL, config, e).controls.tau) for e in (1, 100, 200)]
     np.testing.assert_allclose(taus, [(1 - 1 / 200) * 0.47 + 0.03, 0.265, 0.03], rtol=1e-5)
 
 
 def test_loss_goes_down_on_a_fixed_batch(fixed_batch):
-    state = train.create_train_state(MODEL, jax.random.key(0))
-    step = jax.jit(train.make_train_step(MODEL, rotate=False))
-    hparams = train.hparams_for_epoch(MODEL, TrainConfig(), epoch=1)
+    state = create_train_state(MODEL, jax.random.key(0))
+    step = jax.jit(make_train_step(MODEL, rotate=False))
+    hparams = hparams_for_epoch(MODEL, TrainConfig(), epoch=1)
     key = jax.random.key(1)
     losses = []
     for _ in range(25):
@@ -66,12 +82,12 @@ def test_loss_goes_down_on_a_fixed_batch(fixed_batch):
 
 
 def test_non_finite_step_keeps_parameters(fixed_batch):
-    state = train.create_train_state(MODEL, jax.random.key(0))
+    state = create_train_state(MODEL, jax.random.key(0))
     positions = np.array(fixed_batch.positions)
     positions[0, 3, np.argmax(fixed_batch.node_mask[0].min(0))] = np.nan  # a fully detected one
-    poisoned = dataclasses.replace(fixed_batch, positions=positions)
-    step = jax.jit(train.make_train_step(MODEL, rotate=False))
-    hparams = train.hparams_for_epoch(MODEL, TrainConfig(), epoch=1)
+    poisoned = fixed_batch._replace(positions=positions)
+    step = jax.jit(make_train_step(MODEL, rotate=False))
+    hparams = hparams_for_epoch(MODEL, TrainConfig(), epoch=1)
     new_state, metrics = step(state, jax.random.key(1), poisoned, hparams)
     assert not bool(metrics["finite"])
     chex_equal = jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), new_state.params, state.params)
@@ -82,27 +98,26 @@ def test_non_finite_step_keeps_parameters(fixed_batch):
 def test_fit_stops_on_non_finite_and_names_the_batch(tmp_path, fixed_batch, monkeypatch):
     positions = np.array(fixed_batch.positions)
     positions[:] = np.nan
-    poisoned = dataclasses.replace(fixed_batch, positions=positions)
+    poisoned = fixed_batch._replace(positions=positions)
     monkeypatch.setattr(data, "training_batches", lambda *a, **k: iter([fixed_batch, poisoned]))
     config = TrainConfig(epochs=2, batch_size=8, max_train_windows=8, checkpoint_every=1)
-    with pytest.raises(train.NonFiniteError, match="epoch 1, batch 1"):
-        train.fit(MODEL, DataConfig(scene="zara1"), config, tmp_path / "run")
+    with pytest.raises(NonFiniteError, match="epoch 1, batch 1"):
+        fit(MODEL, DataConfig(scene="zara1"), config, tmp_path / "run")
     assert not (tmp_path / "run" / "checkpoints" / "1").exists()
 
 
 def test_resume_after_sigkill_matches_uninterrupted_run_and_evaluates(tmp_path):
     # 24 windows / 8 per step = 3 steps per epoch: killing after step 5 is mid-epoch 2.
-    killed = _train(tmp_path, tmp_path / "resumed", GST_JAX_TEST_KILL_AFTER_STEPS="5")
+    killed = _train(tmp_path / "resumed", kill_after=5)
     assert killed.returncode == -signal.SIGKILL, killed.stderr
     assert (tmp_path / "resumed" / "checkpoints" / "1").exists()
     assert not (tmp_path / "resumed" / "checkpoints" / "2").exists()
-    resumed = _train(tmp_path, tmp_path / "resumed")
+    resumed = _train(tmp_path / "resumed")
     assert resumed.returncode == 0, resumed.stderr
     assert "resuming" in resumed.stderr
-    straight = _train(tmp_path, tmp_path / "straight")
+    straight = _train(tmp_path / "straight")
     assert straight.returncode == 0, straight.stderr
 
-    from gst_jax.evaluate import load_run
     a, b = load_run(tmp_path / "resumed"), load_run(tmp_path / "straight")
     assert a.epoch == b.epoch == 3
     for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params)):
@@ -112,7 +127,7 @@ def test_resume_after_sigkill_matches_uninterrupted_run_and_evaluates(tmp_path):
 
     evaluated = subprocess.run(
         [sys.executable, "-m", "gst_jax.evaluate", str(tmp_path / "straight"), "--samples", "4",
-         "--json"], env=_env(tmp_path), capture_output=True, text=True, timeout=600)
+         "--json"], capture_output=True, text=True, timeout=600)
     assert evaluated.returncode == 0, evaluated.stderr
     result = json.loads(evaluated.stdout)
     assert result["windows"] == 124 and result["samples"] == 4
@@ -125,7 +140,7 @@ def test_resume_after_sigkill_matches_uninterrupted_run_and_evaluates(tmp_path):
 def test_validation_split_is_evaluated_during_training(tmp_path):
     config = TrainConfig(epochs=2, batch_size=4, max_train_windows=4, eval_every=1,
                          checkpoint_every=2)
-    train.fit(MODEL, DataConfig(scene="hotel", protocol="paper-val"), config, tmp_path / "run")
+    fit(MODEL, DataConfig(scene="hotel", protocol="paper-val"), config, tmp_path / "run")
     records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text()
                .splitlines()]
     assert [r["epoch"] for r in records] == [1, 2]

@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 
+from gst_jax import cli
 from gst_jax.config import ETH_UCY_SCENES, PROTOCOLS, SCENES, DataConfig
-from gst_jax.data.readers import DataError
 from gst_jax.data.stats import format_stats, split_stats
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m gst_jax.data", description=__doc__)
+    parser = cli.parser("gst_jax.data", __doc__)
     commands = parser.add_subparsers(dest="command", required=True)
     stats = commands.add_parser("stats", help="windows, pedestrians and fully detected counts")
     stats.add_argument("--scene", action="append", choices=SCENES,
@@ -25,13 +23,13 @@ def main(argv: list[str] | None = None) -> None:
                        help="folder holding eth_ucy/ and trajnetpp/ (default: bundled data/)")
     stats.add_argument("--json", action="store_true",
                        help="print JSON in the schema of reference_windows.json")
-    args = parser.parse_args(argv)
+    cli.run(show_stats, parser, argv)
+
+
+def show_stats(args) -> None:
     config = DataConfig(protocol=args.protocol, obs_len=args.obs_len, pred_len=args.pred_len,
                         data_dir=args.data_dir)
-    try:
-        result = split_stats(config, args.scene or list(ETH_UCY_SCENES))
-    except DataError as error:
-        sys.exit(f"error: {error}")
+    result = split_stats(config, args.scene or list(ETH_UCY_SCENES))
     print(json.dumps(result, indent=1) if args.json else format_stats(result))
 
 

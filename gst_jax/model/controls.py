@@ -6,6 +6,8 @@ import flax
 import jax
 import jax.numpy as jnp
 
+from gst_jax.config import EVAL_TAU, ModelConfig
+
 
 @flax.struct.dataclass
 class Controls:
@@ -25,3 +27,8 @@ class Controls:
     def make(cls, tau: float, num_edge_heads: int, ghost: bool) -> "Controls":
         return cls(tau=jnp.float32(tau), num_edge_heads=jnp.int32(num_edge_heads),
                    ghost=jnp.bool_(ghost))
+
+    @classmethod
+    def from_config(cls, config: ModelConfig, tau: float = EVAL_TAU) -> "Controls":
+        """The config's own n and ghost, at temperature `tau` (default: evaluation's 0.03)."""
+        return cls.make(tau, config.num_edge_heads, config.ghost)

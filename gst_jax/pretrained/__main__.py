@@ -1,21 +1,37 @@
-"""`python -m gst_jax.pretrained export RUN --name NAME` / `python -m gst_jax.pretrained list`."""
+"""Shipped models: `python -m gst_jax.pretrained list`, `... export RUN --name NAME`."""
 
-import argparse
+from __future__ import annotations
 
-from gst_jax import pretrained
+import json
 
-parser = argparse.ArgumentParser(prog="python -m gst_jax.pretrained", description=__doc__)
-commands = parser.add_subparsers(dest="command", required=True)
-export = commands.add_parser("export", help="copy a trained run into gst_jax/pretrained/<name>")
-export.add_argument("run", help="work directory of `python -m gst_jax.train`")
-export.add_argument("--name", required=True, help="e.g. eth_d")
-commands.add_parser("list", help="shipped models and their measured test AOE/FOE")
-args = parser.parse_args()
-if args.command == "export":
-    print(f"written: {pretrained.export(args.run, args.name)}")
-else:
-    for name in pretrained.available():
-        meta = pretrained.load_meta(name)
+from gst_jax import cli, pretrained
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.parser("gst_jax.pretrained", __doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+    export = commands.add_parser("export", help="copy a trained run into gst_jax/pretrained/<name>")
+    export.add_argument("run", help="work directory of `python -m gst_jax.train`")
+    export.add_argument("--name", required=True, help="e.g. eth_d")
+    listing = commands.add_parser("list", help="shipped models and their measured test AOE/FOE")
+    listing.add_argument("--json", action="store_true", help="print every model's meta.json")
+    cli.run(command, parser, argv)
+
+
+def command(args) -> None:
+    if args.command == "export":
+        from gst_jax.pretrained.export import export   # evaluation code, only when exporting
+        print(f"written: {export(args.run, args.name)}")
+        return
+    metas = {name: pretrained.load_meta(name) for name in pretrained.available()}
+    if args.json:
+        print(json.dumps(metas, indent=2))
+        return
+    for name, meta in metas.items():
         m = meta.get("test_metrics") or {}
         print(f"{name}: epoch {meta['epoch']}, AOE {m.get('aoe', float('nan')):.3f} "
               f"FOE {m.get('foe', float('nan')):.3f} ({m.get('protocol', 'not evaluated')})")
+
+
+if __name__ == "__main__":
+    main()

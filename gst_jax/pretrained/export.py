@@ -1,0 +1,46 @@
+"""Adding a shipped model: a trained run's parameters, its test evaluation and a fixed-key check."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import jax
+import orbax.checkpoint as ocp
+
+from gst_jax import data
+from gst_jax.config import DataConfig, ModelConfig
+from gst_jax.evaluation import evaluate_params
+from gst_jax.pretrained import ROOT
+from gst_jax.runs import load_run, run_config
+
+# The fixed-key check stored with every model: AOE on the first windows of its test split.
+CHECK = {"windows": 4, "samples": 2, "seed": 0}
+
+
+def check_aoe(config: ModelConfig, params, data_config: DataConfig) -> float:
+    """AOE of the fixed-key check (CHECK) on the first windows of the test split."""
+    test_set = data.load_split(data_config, "test")
+    test_set = test_set.subset(range(min(CHECK["windows"], len(test_set))))
+    return evaluate_params(params, jax.random.key(CHECK["seed"]), test_set, config,
+                           num_samples=CHECK["samples"], with_kde=False,
+                           with_baseline=False)["aoe"]
+
+
+def export(run_path: str | Path, name: str) -> Path:
+    """Copy a trained run's latest parameters and its evaluation into the package."""
+    run = load_run(run_path)
+    metrics = run.workdir.read_evaluation(run.data_config, "test", run.epoch)
+    folder = ROOT / name
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    with ocp.StandardCheckpointer() as checkpointer:
+        checkpointer.save((folder / "params").absolute(), run.params)
+    meta = {**run_config(run.model_config, run.data_config, run.train_config),
+            "epoch": run.epoch, "source": str(run.workdir.path), "test_metrics": metrics,
+            "train_time_s": run.workdir.training_time_s(),
+            "check": {**CHECK, "aoe": check_aoe(run.model_config, run.params, run.data_config)}}
+    (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return folder

@@ -1,0 +1,68 @@
+"""A simulated run as a PNG of the paths and as an animated GIF (matplotlib, Agg)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+
+from gst_jax.simulate.scenarios import DT, Scenario  # noqa: E402
+
+
+def plot_run(positions: np.ndarray, scenario: Scenario, path: Path, title: str) -> Path:
+    """PNG of every agent's path (dotted while not yet detected), the robot in red."""
+    fig, ax = plt.subplots(figsize=(5.0, 4.0))
+    for a in range(positions.shape[1]):
+        seen = np.arange(positions.shape[0]) >= scenario.detected_from[a]
+        color = "tab:red" if a == 0 else "tab:blue"
+        ax.plot(positions[:, a, 0], positions[:, a, 1], ":", color=color, lw=0.8)
+        ax.plot(positions[seen, a, 0], positions[seen, a, 1], "-", color=color, lw=1.5,
+                label=("robot" if a == 0 else "human") if a < 2 else None)
+        ax.plot(*positions[0, a], "o", color=color, ms=4)
+    ax.plot(*scenario.goal, "*", color="tab:red", ms=10, label="robot goal")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=8)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def animate_run(positions: np.ndarray, scenario: Scenario, path: Path, title: str,
+                fps: float = 2 / DT) -> Path:
+    """Animated GIF of a run (Pillow writer), one frame per step at `fps` (default 2x real
+    time): trails so far, agents as dots, undetected agents hollow."""
+    num_steps, num_agents = positions.shape[:2]
+    colors = ["tab:red"] + ["tab:blue"] * (num_agents - 1)
+    lo, hi = positions.reshape(-1, 2).min(0) - 0.5, positions.reshape(-1, 2).max(0) + 0.5
+    aspect = (hi[1] - lo[1]) / (hi[0] - lo[0])
+    fig, ax = plt.subplots(figsize=(4.0, float(np.clip(4.0 * aspect, 1.5, 4.0)) + 0.5))
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.plot(*scenario.goal, "*", color="tab:red", ms=9)
+    ax.set_title(title, fontsize=7)
+    ax.tick_params(labelsize=6)
+    trails = [ax.plot([], [], "-", color=c, lw=1.2)[0] for c in colors]
+    dots = [ax.plot([], [], "o", color=c, ms=5)[0] for c in colors]
+
+    def draw(t: int) -> list:
+        for a in range(num_agents):
+            trails[a].set_data(positions[:t + 1, a, 0], positions[:t + 1, a, 1])
+            dots[a].set_data(positions[t, a, :1], positions[t, a, 1:])
+            dots[a].set_markerfacecolor(colors[a] if t >= scenario.detected_from[a] else "none")
+        return trails + dots
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FuncAnimation(fig, draw, frames=num_steps, blit=True).save(
+        path, writer=PillowWriter(fps=fps), dpi=80)
+    plt.close(fig)
+    return path

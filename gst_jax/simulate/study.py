@@ -1,0 +1,65 @@
+"""Every model on every scenario: measures, one PNG (and GIF) per run, results.json."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import jax
+import numpy as np
+
+from gst_jax.config import EVAL_TAU
+from gst_jax.model import Controls
+from gst_jax.runs import Run
+from gst_jax.simulate.figures import animate_run, plot_run
+from gst_jax.simulate.loop import StepModel, constant_velocity_model, gst_model, simulate
+from gst_jax.simulate.measures import robot_measures
+from gst_jax.simulate.scenarios import SCENARIOS
+
+COLUMNS = ["scenario", "model", "min_distance_m", "collision_steps", "progress",
+           "path_length_ratio", "u_turn", "frozen"]
+
+
+def step_models(runs: Sequence[Run], edge_heads: Sequence[int] | None = None
+                ) -> list[tuple[str, StepModel]]:
+    """Constant velocity, then every run at each n of `edge_heads` (default: its own n)."""
+    models: list[tuple[str, StepModel]] = [("constant velocity", constant_velocity_model)]
+    for run in runs:
+        label = Path(run.name).name        # 'eth-paper-...', 'hotel:n4-...', 'pretrained:eth'
+        for n in edge_heads or [run.model_config.num_edge_heads]:
+            controls = Controls.make(EVAL_TAU, n, run.model_config.ghost)
+            models.append((f"{label} n={n if n else 'F'}",
+                           gst_model(run.params, run.model_config, controls)))
+    return models
+
+
+def run_scenarios(models: Sequence[tuple[str, StepModel]], scenario_names: Sequence[str],
+                  out: Path, *, seed: int = 0, animate: bool = False) -> list[dict]:
+    """Simulate every model in every scenario; one row of measures (and figure paths) each.
+    Writes out/results.json and the figures."""
+    rows = []
+    for name in scenario_names:
+        scenario = SCENARIOS[name]()
+        for label, model in models:
+            positions = np.asarray(simulate(model, scenario, jax.random.key(seed)))
+            row = {"scenario": scenario.name, "model": label,
+                   **robot_measures(positions, scenario)}
+            stem = f"{scenario.name}-{label.replace(' ', '_').replace('=', '').replace(':', '_')}"
+            title = f"{scenario.name}, {label}"
+            row["figure"] = str(plot_run(positions, scenario, out / f"{stem}.png", title))
+            if animate:
+                row["animation"] = str(animate_run(positions, scenario, out / f"{stem}.gif",
+                                                   title))
+            rows.append(row)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(rows, indent=2) + "\n")
+    return rows
+
+
+def format_markdown(rows: Sequence[dict]) -> str:
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for row in rows:
+        lines.append("| " + " | ".join(f"{row[c]:.2f}" if isinstance(row[c], float)
+                                       else str(row[c]) for c in COLUMNS) + " |")
+    return "\n".join(lines)

@@ -1,0 +1,234 @@
+"""The epoch loop, written once for single runs and sweeps, and `fit`, which trains one run.
+
+The loop resumes from the latest checkpoint (dropping the metrics of epochs after it),
+saves a checkpoint every `checkpoint_every` epochs and at the end, writes one metrics.jsonl
+line per epoch, shows progress with an ETA, and applies the non-finite policy: a step whose
+loss or gradients are not finite keeps the state it had (`make_train_step` does that); a
+single run then stops with `NonFiniteError`, a sweep counts it per member and goes on.
+
+`python -m gst_jax.train` with no arguments trains the paper's configuration (GST (D), n = 1,
+ghost, seed 1000, 200 epochs, 16 scenes per step, Adam 1e-3 x 0.3 every 50 epochs, tau
+annealed 0.5 -> 0.03, random rotation, dropout 0.1) on `eth` under the paper protocol.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+from typing import Any, Callable, TextIO
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gst_jax import data
+from gst_jax.compiles import count_compiles
+from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.evaluation import evaluate_params
+from gst_jax.predict import make_predict
+from gst_jax.runs import WorkDir, run_config
+from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
+                                    parameter_key, step_key, validation_key)
+from gst_jax.training.step import make_train_step
+
+class NonFiniteError(RuntimeError):
+    """A single run's step had a non-finite loss or gradient; the last checkpoint is kept."""
+
+
+class Progress:
+    """One status line per epoch on any stream; a live line within the epoch on a terminal."""
+
+    def __init__(self, stream: TextIO | None = None):
+        self.stream = stream or sys.stderr
+        self.live = self.stream.isatty()
+
+    def step(self, epoch: int, epochs: int, step: int, steps: int, scenes_per_s: float,
+             loss: float, eta_s: float) -> None:
+        if self.live:
+            self.stream.write(f"\repoch {epoch}/{epochs} step {step}/{steps} "
+                              f"{scenes_per_s:6.1f} scenes/s loss {loss:.4f} ETA {_hms(eta_s)}  ")
+            self.stream.flush()
+
+    def line(self, text: str) -> None:
+        self.stream.write(("\r" if self.live else "") + text + "\n")
+        self.stream.flush()
+
+
+def _hms(seconds: float) -> str:
+    seconds = int(max(seconds, 0))
+    return f"{seconds // 3600:d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+@dataclasses.dataclass(frozen=True)
+class Training:
+    """What the loop trains: one run, or the members of a sweep stacked on a leading axis.
+
+    Attributes:
+      init_state: () -> a fresh state; called only when there is no checkpoint to resume.
+      train_step: jitted (state, key, batch, hparams) -> (state, metrics); for a sweep every
+        argument but the batch carries the member axis.
+      hparams: epoch -> HParams (stacked for a sweep).
+      seeds: one per member (one for a single run); they derive the step keys.
+      member_names: None for a single run (unstacked state, scalar metrics).
+    """
+
+    init_state: Callable[[], TrainState]
+    train_step: Callable
+    hparams: Callable[[int], HParams]
+    seeds: tuple[int, ...]
+    member_names: tuple[str, ...] | None = None
+
+    def step_keys(self, epoch: int, step: int) -> jax.Array:
+        keys = [step_key(seed, epoch, step) for seed in self.seeds]
+        return keys[0] if self.member_names is None else jnp.stack(keys)
+
+    def per_member(self, values: np.ndarray) -> Any:
+        """A float for a single run, {member name: float} for a sweep."""
+        if self.member_names is None:
+            return float(values[0])
+        return {name: float(v) for name, v in zip(self.member_names, values)}
+
+
+def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: data.WindowSet,
+                 train_config: TrainConfig, *, stop_on_non_finite: bool,
+                 after_epoch: Callable[[int, TrainState], dict] | None = None,
+                 progress: Progress | None = None) -> TrainState:
+    """Train (or resume) up to `train_config.epochs`; returns the final state.
+
+    config: the run's JSON config, stored with every checkpoint. after_epoch: extra fields
+    of an epoch's metrics record (validation), given the epoch and its final state.
+    """
+    progress = progress or Progress()
+    checkpointer = workdir.checkpointer()
+    last_epoch = checkpointer.latest_epoch or 0
+    if last_epoch:
+        state, _, _ = checkpointer.restore(jax.eval_shape(training.init_state), last_epoch)
+        progress.line(f"resuming {workdir.path} after epoch {last_epoch}")
+    else:
+        state = training.init_state()
+    # Records of epochs after the checkpoint (a crashed run's tail) are written again.
+    workdir.truncate_metrics(last_epoch)
+    start_epoch = last_epoch + 1
+
+    steps_per_epoch = math.ceil(len(train_set) / train_config.batch_size)
+    total_steps = (train_config.epochs - start_epoch + 1) * steps_per_epoch
+    members = len(training.seeds)
+    run_start = time.perf_counter()
+    try:
+        for epoch in range(start_epoch, train_config.epochs + 1):
+            hparams = training.hparams(epoch)
+            epoch_start = time.perf_counter()
+            loss_sum, non_finite, scenes = np.zeros(members), np.zeros(members, int), 0.0
+            batches = data.training_batches(train_set, batch_size=train_config.batch_size,
+                                            seed=train_config.seed, epoch=epoch)
+            with count_compiles() as compiles:
+                for step, batch in enumerate(batches):
+                    state, metrics = training.train_step(state, training.step_keys(epoch, step),
+                                                         batch, hparams)
+                    loss = np.atleast_1d(np.asarray(metrics["loss"], np.float64))
+                    finite = np.atleast_1d(np.asarray(metrics["finite"]))
+                    if stop_on_non_finite and not finite.all():
+                        raise NonFiniteError(
+                            f"non-finite loss or gradient at epoch {epoch}, batch {step} "
+                            f"(loss {loss[0]}); parameters of the last checkpoint (epoch "
+                            f"{checkpointer.latest_epoch}) are kept in "
+                            f"{workdir.path}/checkpoints")
+                    real = float(np.sum(batch.scene_mask))
+                    loss_sum += np.where(np.isfinite(loss), loss, 0.0) * real
+                    non_finite += ~finite
+                    scenes += real
+                    done = (epoch - start_epoch) * steps_per_epoch + step + 1
+                    seconds_per_step = (time.perf_counter() - run_start) / done
+                    progress.step(epoch, train_config.epochs, step + 1, steps_per_epoch,
+                                  scenes / max(time.perf_counter() - epoch_start, 1e-9),
+                                  float(np.mean(loss_sum)) / scenes,
+                                  seconds_per_step * (total_steps - done))
+
+            epoch_time = time.perf_counter() - epoch_start
+            record = {"epoch": epoch, "loss": training.per_member(loss_sum / max(scenes, 1.0)),
+                      "tau": float(np.ravel(hparams.controls.tau)[0]),
+                      "learning_rate": float(np.ravel(hparams.learning_rate)[0]),
+                      "epoch_time_s": epoch_time, "scenes_per_s": scenes / epoch_time,
+                      "step": int(np.max(state.step)), "compiles": compiles.count,
+                      "compile_time_s": compiles.seconds}
+            if non_finite.any():
+                names = training.member_names or ("run",)
+                record["non_finite_steps"] = {name: int(v) for name, v in zip(names, non_finite)
+                                              if v}
+            if after_epoch is not None:
+                record.update(after_epoch(epoch, state))
+            # The record first: a crash before the checkpoint leaves a line that a resume
+            # from the previous checkpoint drops, never a checkpoint without its line.
+            workdir.append_metrics(record)
+            if epoch % train_config.checkpoint_every == 0 or epoch == train_config.epochs:
+                checkpointer.save(epoch, state, config)
+            progress.line(_format_record(record))
+    finally:
+        checkpointer.close()
+    return state
+
+
+def _format_record(record: dict) -> str:
+    """`epoch 3 loss 0.4 ...`; a sweep's per-member values as their range."""
+    def value(v):
+        if isinstance(v, dict):
+            return f"{min(v.values()):.4g}..{max(v.values()):.4g}" if v else "-"
+        return f"{v:.4g}" if isinstance(v, float) else str(v)
+    return " ".join(f"{name} {value(v)}" for name, v in record.items())
+
+
+def load_train_set(data_config: DataConfig, train_config: TrainConfig) -> data.WindowSet:
+    """The training windows, cut to the first `max_train_windows` when set (smoke tests)."""
+    train_set = data.load_split(data_config, "train")
+    if train_config.max_train_windows:
+        train_set = train_set.subset(range(min(train_config.max_train_windows, len(train_set))))
+    return train_set
+
+
+def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
+        workdir: str | WorkDir, *, progress: Progress | None = None) -> dict:
+    """Train (or resume) one run in `workdir`; returns the summary also written there."""
+    workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
+    train_set = load_train_set(data_config, train_config)
+    config = run_config(model_config, data_config, train_config)
+    workdir.prepare(config)
+    seed = train_config.seed
+    training = Training(
+        init_state=lambda: create_train_state(model_config, parameter_key(seed)),
+        train_step=jax.jit(make_train_step(model_config, rotate=train_config.rotate),
+                           donate_argnums=0),
+        hparams=lambda epoch: hparams_for_epoch(model_config, train_config, epoch),
+        seeds=(seed,))
+    start = time.perf_counter()
+    train_epochs(training, workdir, config, train_set, train_config, stop_on_non_finite=True,
+                 after_epoch=_validation(model_config, data_config, train_config),
+                 progress=progress)
+    summary = {"workdir": str(workdir.path), "epochs": train_config.epochs,
+               "final_loss": workdir.read_metrics()[-1]["loss"],
+               "wall_time_s": time.perf_counter() - start, "train_windows": len(train_set),
+               "config": config}
+    workdir.write_summary(summary)
+    return summary
+
+
+def _validation(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig
+                ) -> Callable[[int, TrainState], dict] | None:
+    """Validation AOE/FOE (one sample) every `eval_every` epochs and at the last, where the
+    protocol has a validation split."""
+    if not (data.has_validation(data_config) and train_config.eval_every):
+        return None
+    val_set = data.load_split(data_config, "val")
+    # Built once: a fresh `make_predict` per validation would recompile every time.
+    predict = make_predict(model_config, num_samples=1, with_graph=False)
+
+    def validate(epoch: int, state: TrainState) -> dict:
+        if epoch % train_config.eval_every and epoch != train_config.epochs:
+            return {}
+        result = evaluate_params(state.params, validation_key(train_config.seed, epoch), val_set,
+                                 model_config, num_samples=1, predict=predict,
+                                 fully_detected_only=train_config.fully_detected_only)
+        return {"val_aoe": result["aoe"], "val_foe": result["foe"]}
+
+    return validate
