@@ -10,12 +10,17 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from gst_jax import noise
 from gst_jax.graph import EPS
 
 
 def sample_gumbel(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
-    """g = -log(eps - log(u + eps)), u ~ U[0, 1): the release's (eps-guarded) Gumbel noise."""
-    uniform = jax.random.uniform(key, shape)
+    """g = -log(eps - log(u + eps)), u ~ U[0, 1): the release's (eps-guarded) Gumbel noise.
+
+    shape (..., N + 1) with the ghost neighbour last; each element's draw depends on its
+    coordinates only (`gst_jax.noise`), so a window's noise does not change with its padding.
+    """
+    uniform = noise.uniform(key, shape, ghost_axis=-1)
     return -jnp.log(EPS - jnp.log(uniform + EPS))
 
 

@@ -18,7 +18,7 @@ import flax
 import jax
 import jax.numpy as jnp
 
-from gst_jax import graph
+from gst_jax import graph, noise
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.gumbel import sample_gumbel
@@ -85,15 +85,18 @@ def observed_edge_probabilities(params, batch: SceneBatch, config: ModelConfig,
     They depend on the observations only, not on the noise: K samples of one batch need them
     once (8 of the 19 selector calls of a rollout).
     """
-    return GST(config).apply({"params": params}, *_observed_inputs(batch, config.obs_len),
-                             controls, deterministic=True, method=GST.select)
+    def one_window(window):
+        return GST(config).apply({"params": params}, *_observed_inputs(window, config.obs_len),
+                                 controls, deterministic=True, method=GST.select)
+
+    return jax.vmap(one_window)(batch)
 
 
-def _observed_inputs(batch: SceneBatch, obs_len: int):
-    """Node features (B, T, N, 2), edge features (B, T, N, N, 2) and node mask (B, T, N) of
-    the observed steps."""
-    node_mask = batch.node_mask[:, :obs_len]
-    positions = batch.positions[:, :obs_len]
+def _observed_inputs(window: SceneBatch, obs_len: int):
+    """Node features (T, N, 2), edge features (T, N, N, 2) and node mask (T, N) of the
+    observed steps of one window."""
+    node_mask = window.node_mask[:obs_len]
+    positions = window.positions[:obs_len]
     return (graph.displacements(positions, node_mask), graph.edge_features(positions, node_mask),
             node_mask)
 
@@ -118,7 +121,7 @@ def sample_displacement(mu: jax.Array, sigma: jax.Array, corr: jax.Array,
 
 
 class RolloutKeys(NamedTuple):
-    """The keys of one rollout, split once by purpose."""
+    """The keys of one window's rollout, split once by purpose."""
 
     gumbel_obs: jax.Array     # Gumbel noise of the observation call
     dropout_obs: jax.Array    # dropout of the observation call
@@ -133,23 +136,50 @@ class RolloutKeys(NamedTuple):
 
 
 class PredictionCarry(NamedTuple):
-    """What one prediction step hands to the next. B scenes, N pedestrians."""
+    """What one prediction step hands to the next, for one window of N pedestrians."""
 
-    hidden: jax.Array         # (B, N, H) LSTM state
-    cell: jax.Array           # (B, N, H)
-    delta: jax.Array          # (B, N, 2) the last predicted displacement
-    edges: jax.Array          # (B, N, N, 2) relative positions A[j, i], evolved by the deltas
+    hidden: jax.Array         # (N, H) LSTM state
+    cell: jax.Array           # (N, H)
+    delta: jax.Array          # (N, 2) the last predicted displacement
+    edges: jax.Array          # (N, N, 2) relative positions A[j, i], evolved by the deltas
     key: jax.Array
+
+
+# Where the window axis of each output sits (attention is (layers, B, S, heads, N, L)).
+_OUTPUT_AXES = RolloutOutput(displacements=0, mu=0, sigma=0, corr=0, edge_probs=0,
+                             sampled_edges=0, predicted_mask=0, attention=1)
+# The window axis of recorded noise (gumbel_pred and normal are step-major).
+_NOISE_AXES = RolloutNoise(gumbel_obs=0, gumbel_pred=1, normal=1)
 
 
 def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: SceneBatch,
              config: ModelConfig, controls: Controls, *, hard: bool, deterministic: bool,
              return_attention: bool, observed_edge_probs: jax.Array | None = None
              ) -> RolloutOutput:
+    """The rollout of every window of `batch`: `_rollout_window` vmapped over windows, each
+    with its own key (`noise.window_keys`), so that a window's draws do not depend on the
+    other windows of its batch."""
+    def one_window(key, recorded, window, observed_edge_probs):
+        return _rollout_window(params, key, recorded, window, config, controls, hard=hard,
+                               deterministic=deterministic, return_attention=return_attention,
+                               observed_edge_probs=observed_edge_probs)
+
+    in_axes = (0, None if recorded is None else _NOISE_AXES, 0,
+               None if observed_edge_probs is None else 0)
+    out_axes = _OUTPUT_AXES if return_attention else _OUTPUT_AXES.replace(attention=None)
+    return jax.vmap(one_window, in_axes=in_axes, out_axes=out_axes)(
+        noise.window_keys(key, batch.window_index), recorded, batch, observed_edge_probs)
+
+
+def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, window: SceneBatch,
+                    config: ModelConfig, controls: Controls, *, hard: bool, deterministic: bool,
+                    return_attention: bool, observed_edge_probs: jax.Array | None
+                    ) -> RolloutOutput:
+    """One window (the SceneBatch fields without their batch axis: positions (T, N, 2), ...)."""
     model = GST(config)
     obs_len, pred_len = config.obs_len, config.pred_len
-    batch_size, _, num_nodes = batch.node_mask.shape
-    noise_shape = (batch_size, num_nodes, config.head_slots, num_nodes + 1)
+    num_nodes = window.node_mask.shape[-1]
+    noise_shape = (num_nodes, config.head_slots, num_nodes + 1)
     gaussian = config.output == "gaussian"
     keys = RolloutKeys.split(key)
 
@@ -162,36 +192,35 @@ def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: Scene
         return delta * keep[..., None]
 
     # --- Observation: one selector/encoder call over all observed steps.
-    node_features, edge_features, node_mask = _observed_inputs(batch, obs_len)
+    node_features, edge_features, node_mask = _observed_inputs(window, obs_len)
     if recorded is None:
-        gumbel_obs = sample_gumbel(keys.gumbel_obs, (batch_size, obs_len) + noise_shape[1:])
-        normal = jax.random.normal(keys.normal, (pred_len, batch_size, num_nodes, 2))
+        gumbel_obs = sample_gumbel(keys.gumbel_obs, (obs_len,) + noise_shape)
+        normal = noise.normal(keys.normal, (pred_len, num_nodes, 2))
     else:
         gumbel_obs, normal = recorded.gumbel_obs, recorded.normal
     encoded, obs_probs, obs_sampled, obs_attention = apply(
         GST.interact, node_features, edge_features, node_mask, gumbel_obs, controls,
         hard=hard, deterministic=deterministic, key=keys.dropout_obs,
         edge_probs=observed_edge_probs)
-    keep = graph.keep_mask(batch.node_mask, obs_len)                            # (B, N)
+    keep = graph.keep_mask(window.node_mask, obs_len)                           # (N,)
 
     if config.temporal == "tcn":
         # Readout: every predicted step from the observed encodings; no further interaction.
         _, dropout_key = jax.random.split(keys.steps)
-        observed = encoded * node_mask[..., None] * keep[:, None, :, None]
+        observed = encoded * node_mask[..., None] * keep[:, None]
         mu, sigma, corr = apply(GST.convolve, observed, deterministic=deterministic,
                                 key=dropout_key)
-        displacements = draw(mu, sigma, corr, jnp.swapaxes(normal, 0, 1), keep[:, None])
-        return RolloutOutput(displacements=displacements, mu=mu, sigma=sigma, corr=corr,
-                             edge_probs=obs_probs, sampled_edges=obs_sampled, predicted_mask=keep,
+        return RolloutOutput(displacements=draw(mu, sigma, corr, normal, keep), mu=mu,
+                             sigma=sigma, corr=corr, edge_probs=obs_probs,
+                             sampled_edges=obs_sampled, predicted_mask=keep,
                              attention=obs_attention if return_attention else None)
 
     def observe(state, step_inputs):
         inputs, mask = step_inputs
         return apply(GST.recur, inputs, state, mask), None
 
-    zeros = jnp.zeros((batch_size, num_nodes, config.lstm_hidden), encoded.dtype)
-    (hidden, cell), _ = jax.lax.scan(
-        observe, (zeros, zeros), (jnp.swapaxes(encoded, 0, 1), jnp.swapaxes(node_mask, 0, 1)))
+    zeros = jnp.zeros((num_nodes, config.lstm_hidden), encoded.dtype)
+    (hidden, cell), _ = jax.lax.scan(observe, (zeros, zeros), (encoded, node_mask))
 
     # --- Prediction: the first displacement comes straight from the observed state.
     hidden, cell = hidden * keep[..., None], cell * keep[..., None]
@@ -205,7 +234,7 @@ def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: Scene
             gumbel = sample_gumbel(gumbel_key, noise_shape)
         # Sampled displacements feed back detached (the release's `detach_sample`).
         fed_back = jax.lax.stop_gradient(carry.delta) if gaussian else carry.delta
-        edges = carry.edges + fed_back[..., :, None, :] - fed_back[..., None, :, :]
+        edges = carry.edges + fed_back[:, None, :] - fed_back[None, :, :]
         encoded, probs, sampled, attention = apply(
             GST.interact, fed_back, edges, keep, gumbel, controls, hard=hard,
             deterministic=deterministic, key=dropout_key)
@@ -218,27 +247,26 @@ def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: Scene
         return PredictionCarry(hidden, cell, delta, edges, key), outputs
 
     # Rematerialised in the backward pass: storing each step's selector activations,
-    # (B, N, L, 128) per step, costs more memory traffic than recomputing them (eth training
+    # (N, L, 128) per step, costs more memory traffic than recomputing them (eth training
     # step 9.0 -> 7.8 s per epoch on the 2-core CPU; benchmarks/README.md).
     predict_step = jax.checkpoint(predict_step)
     step_noise = (None if recorded is None else recorded.gumbel_pred, normal[1:])
-    carry = PredictionCarry(hidden, cell, delta, edge_features[:, -1], keys.steps)
+    carry = PredictionCarry(hidden, cell, delta, edge_features[-1], keys.steps)
     _, (deltas, mus, sigmas, corrs, probs, sampled, attention) = jax.lax.scan(
         predict_step, carry, step_noise, length=pred_len - 1)
 
-    def with_first(first, rest):  # (B, ...) and (P-1, B, ...) -> (B, P, ...)
-        return jnp.concatenate([first[:, None], jnp.swapaxes(rest, 0, 1)], axis=1)
-
-    def obs_then_pred(obs, pred, time_axis):  # obs (.., B, T, ..), pred (P-1, .., B, ..)
-        return jnp.concatenate([obs, jnp.moveaxis(pred, 0, time_axis)], axis=time_axis)
+    def with_first(first, rest):  # (N, ...) and (P-1, N, ...) -> (P, N, ...)
+        return jnp.concatenate([first[None], rest], axis=0)
 
     return RolloutOutput(
         displacements=with_first(delta, deltas),
         mu=with_first(mu, mus),
         sigma=with_first(sigma, sigmas),
         corr=with_first(corr, corrs),
-        edge_probs=obs_then_pred(obs_probs, probs, 1),
-        sampled_edges=obs_then_pred(obs_sampled, sampled, 1),
+        edge_probs=jnp.concatenate([obs_probs, probs]),              # (S, N, G, L)
+        sampled_edges=jnp.concatenate([obs_sampled, sampled]),
         predicted_mask=keep,
-        attention=obs_then_pred(obs_attention, attention, 2) if return_attention else None,
+        # (layers, T_obs, heads, N, L) and (P-1, layers, heads, N, L) -> (layers, S, ...)
+        attention=(jnp.concatenate([obs_attention, jnp.moveaxis(attention, 0, 1)], axis=1)
+                   if return_attention else None),
     )

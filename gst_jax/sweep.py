@@ -3,8 +3,8 @@
     python -m gst_jax.sweep --scene zara1 --edge-heads 0,1,2,4,8,16 --seeds 3 \\
         --fully-detected-only both
 
-Every (n, detection, seed) member is trained by one `jax.jit(jax.vmap(train_step))` on the
-same batches, then evaluated on the test split; the work directory gets results.json, .csv,
+Every (n, detection, seed) member is trained by one vmapped training step on the same
+batches, then evaluated on the test split; the work directory gets results.json, .csv,
 .md and aoe_foe_vs_n.png. Rerunning the command resumes the sweep.
 """
 

@@ -203,20 +203,35 @@ def test_padding_keeps_real_entries():
     np.testing.assert_array_equal(large.window_index, [0, 1, 2, -1, -1])
 
 
-def test_training_batches_are_seeded_and_cover_every_window():
-    windows = data.load_split(DataConfig(scene="univ"), "test")
-    batches = list(data.training_batches(windows, batch_size=16, seed=3, epoch=1))
-    seen = np.concatenate([b.window_index[b.scene_mask > 0] for b in batches])
-    assert sorted(seen.tolist()) == list(range(len(windows)))
-    for batch in batches:
-        b, _, n = batch.shape
-        assert b == 16 and n in data.BUCKETS
-        sizes = [windows[i].num_pedestrians for i in batch.window_index if i >= 0]
-        assert n == data.bucket_size(max(sizes))
+def _step_windows(step: data.PackedStep) -> list[int]:
+    return [int(i) for b in step.micro_batches for i in b.window_index[b.scene_mask > 0]]
+
+
+def test_training_steps_are_seeded_size_packed_and_cover_every_window():
+    windows = data.load_split(DataConfig(scene="eth", protocol="loo"), "test")  # 3-42 people
+    steps = list(data.training_batches(windows, batch_size=16, seed=3, epoch=1))
+    seen = sorted(i for step in steps for i in _step_windows(step))
+    assert seen == list(range(len(windows)))
+    assert [s.num_scenes for s in steps] == [16] * (len(steps) - 1) + [len(windows) % 16 or 16]
+    shapes = set()
+    for step in steps:
+        assert len(_step_windows(step)) == step.num_scenes
+        for batch in step.micro_batches:
+            b, _, n = batch.shape
+            shapes.add((b, n))
+            sizes = [windows[i].num_pedestrians for i in batch.window_index if i >= 0]
+            if b == 1:              # a large window, alone, in its own bucket
+                assert sizes[0] > data.SHARED_MICRO_BATCH_MAX
+                assert n == data.bucket_size(sizes[0], data.TRAINING_BUCKETS)
+            else:                   # the small windows together, padded to the largest
+                assert b == 16 and max(sizes) <= data.SHARED_MICRO_BATCH_MAX
+                assert n == data.bucket_size(max(sizes), data.TRAINING_BUCKETS)
+    assert any(b == 1 for b, _ in shapes) and any(b == 16 for b, _ in shapes)
+    assert len(shapes) <= len(data.TRAINING_BUCKETS)         # a small, fixed set of programs
     again = list(data.training_batches(windows, batch_size=16, seed=3, epoch=1))
     other = list(data.training_batches(windows, batch_size=16, seed=3, epoch=2))
-    assert all(np.array_equal(a.window_index, b.window_index) for a, b in zip(batches, again))
-    assert not np.array_equal(batches[0].window_index, other[0].window_index)
+    assert [_step_windows(s) for s in steps] == [_step_windows(s) for s in again]
+    assert _step_windows(steps[0]) != _step_windows(other[0])
 
 
 def test_evaluation_batches_respect_the_edge_budget():

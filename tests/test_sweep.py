@@ -64,7 +64,7 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
     stacked = checkpointer.restore(sweep.initial_states(config, members))[0]
     checkpointer.close()
     train_set = data.load_split(data_config, "train").subset(range(4))
-    single_step = jax.jit(make_train_step(config))
+    single_step = make_train_step(config)
     for k, member in enumerate(members):
         alone = sweep_members.member_config(config, member)
         state = create_train_state(alone, jax.random.fold_in(jax.random.key(member.seed), 0))
@@ -90,8 +90,8 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
         # well within the 8 x lr that 8 Adam steps can move them.
         theirs = sweep_members.unstack(stacked.params, k)
         controls = Controls.make(0.5, member.edge_heads, True)
-        batch = drop_partially_detected(next(iter(data.training_batches(train_set, batch_size=4))),
-                                        member.fully_detected_only)
+        step = next(iter(data.training_batches(train_set, batch_size=4)))
+        batch = drop_partially_detected(step.micro_batches[0], member.fully_detected_only)
         predictions = [rollout(p, jax.random.key(5), batch, config, controls, hard=False,
                                deterministic=True).displacements for p in (state.params, theirs)]
         np.testing.assert_allclose(*predictions, rtol=1e-4, atol=1e-5)

@@ -1,11 +1,12 @@
 """Padding windows into `SceneBatch`es: N rounded up to a few bucket sizes (numpy only).
 
-Each bucket size is one compiled program, so the sizes are few; B per bucket is fixed too.
+Each (B, N) shape is one compiled program, so the sizes are few. A training step is a
+`PackedStep`: its windows in micro-batches, each padded only to its own size bucket.
 """
 
 from __future__ import annotations
 
-from typing import Iterator, Sequence
+from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
@@ -13,8 +14,27 @@ from gst_jax.data.batch import SceneBatch, node_mask_from_positions
 from gst_jax.data.readers import DataError
 from gst_jax.data.windows import Window, WindowSet
 
-# Pedestrian-slot sizes; ETH/UCY windows hold 1-93 pedestrians.
+# Pedestrian-slot sizes of evaluation and prediction batches; ETH/UCY windows hold 1-93
+# pedestrians. Few sizes: a planner whose crowd changes size meets few compiled programs.
 BUCKETS = (8, 16, 24, 32, 48, 64, 96, 128)
+# Training: every 8 slots, because a large window costs ~N^3 (each target's attention over
+# its N + 1 neighbours) and trains in a micro-batch of its own (see `pack_step`).
+TRAINING_BUCKETS = tuple(range(8, 129, 8))
+# Windows of up to this many pedestrians share one micro-batch of the step; larger ones
+# train one per micro-batch. Below it a call's fixed cost outweighs its padding; above it,
+# padding a 25-pedestrian window to 96 slots would cost 60 times its own work.
+SHARED_MICRO_BATCH_MAX = 24
+
+
+class PackedStep(NamedTuple):
+    """One optimiser step: its windows in micro-batches, each padded to its own bucket.
+
+    micro_batches: SceneBatches whose window_index name the step's windows (each once).
+    num_scenes: the step's real windows; the step's loss is their mean (docs/MODEL.md 3).
+    """
+
+    micro_batches: tuple[SceneBatch, ...]
+    num_scenes: int
 
 
 def bucket_size(num_pedestrians: int, buckets: Sequence[int] = BUCKETS) -> int:
@@ -49,19 +69,37 @@ def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int
 
 
 def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int = 0,
-                     epoch: int = 0, buckets: Sequence[int] = BUCKETS) -> Iterator[SceneBatch]:
-    """One batch per optimiser step: shuffled windows taken `batch_size` at a time.
+                     epoch: int = 0) -> Iterator[PackedStep]:
+    """One packed step per optimiser step: shuffled windows taken `batch_size` at a time.
 
-    As in the release, a step averages `batch_size` randomly drawn scenes; the step is padded
-    to the bucket of its largest scene, the last partial step with empty scenes. The order is
-    a function of (seed, epoch) only, so a resumed run sees the same batches.
+    As in the release, a step averages `batch_size` randomly drawn scenes (the last step of
+    an epoch fewer). The order is a function of (seed, epoch) only, so a resumed run sees
+    the same steps.
     """
     order = np.random.default_rng([seed, epoch]).permutation(len(window_set))
     for start in range(0, len(order), batch_size):
         chosen = order[start:start + batch_size]
-        windows = [window_set[i] for i in chosen]
-        size = bucket_size(max(w.num_pedestrians for w in windows), buckets)
-        yield pad_windows(windows, size, batch_size, chosen)
+        yield pack_step([window_set[i] for i in chosen], chosen, batch_size)
+
+
+def pack_step(windows: Sequence[Window], window_index: Sequence[int],
+              shared_slots: int = 16) -> PackedStep:
+    """A step's windows in micro-batches: those of up to SHARED_MICRO_BATCH_MAX pedestrians
+    together in one batch of `shared_slots` scenes padded to the largest of them, each
+    larger window alone, padded to its TRAINING_BUCKETS size. The programs of an epoch are
+    thus one per (bucket, 1) and per small bucket: a fixed, small set."""
+    small = [k for k, w in enumerate(windows) if w.num_pedestrians <= SHARED_MICRO_BATCH_MAX]
+    large = [k for k, w in enumerate(windows) if w.num_pedestrians > SHARED_MICRO_BATCH_MAX]
+    micro_batches = []
+    if small:
+        size = bucket_size(max(windows[k].num_pedestrians for k in small), TRAINING_BUCKETS)
+        micro_batches.append(pad_windows([windows[k] for k in small], size,
+                                         max(shared_slots, len(small)),
+                                         [window_index[k] for k in small]))
+    for k in large:
+        size = bucket_size(windows[k].num_pedestrians, TRAINING_BUCKETS)
+        micro_batches.append(pad_windows([windows[k]], size, 1, [window_index[k]]))
+    return PackedStep(tuple(micro_batches), len(windows))
 
 
 def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,

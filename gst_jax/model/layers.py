@@ -12,6 +12,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from gst_jax import noise
+
 
 def torch_uniform(fan_in: int):
     """U(-1/sqrt(fan_in), 1/sqrt(fan_in)): PyTorch's default for Linear and LSTM parameters."""
@@ -59,33 +61,24 @@ class LayerNormParams(nn.Module):
                 self.param("bias", nn.initializers.zeros, (self.features,)))
 
 
-def _mix32(x: jax.Array) -> jax.Array:
-    """MurmurHash3's 32-bit finaliser: a bijection whose output bits all depend on every input bit."""
-    x = x ^ (x >> 16)
-    x = x * jnp.uint32(0x85EBCA6B)
-    x = x ^ (x >> 13)
-    x = x * jnp.uint32(0xC2B2AE35)
-    return x ^ (x >> 16)
-
-
 class Dropout(nn.Module):
-    """Inverted dropout whose mask is a counter-based hash of the element index.
+    """Inverted dropout whose mask is a hash of each element's coordinates (`gst_jax.noise`).
 
-    flax's nn.Dropout draws threefry bits for every element; for the edge selector's hidden
-    layer, B x T x N x (N+1) x 128 elements per call, that took about a quarter of a training
-    step on CPU. Here two 32-bit words drawn from the 'dropout' key seed two rounds of
-    MurmurHash3's finaliser over the flat element index: Bernoulli(1 - rate) up to 2^-32,
-    with independent-looking masks per call, at the cost of a few integer ops per element.
+    The mask of an element depends only on the 'dropout' key and its coordinates, not on
+    the array's padded shape, so a window's masks do not change with its padding (the
+    rollout runs the model on one window at a time, vmapped). With `ghost_axis`, the last
+    index along that axis is the ghost neighbour and keeps its own masks whatever N is.
+    Hashing also costs a few integer ops per element, where flax's threefry dropout of the
+    selector's (T, N, N+1, 128) hidden layer took a quarter of a training step on CPU.
     """
 
     rate: float
+    ghost_axis: int | None = None
 
     @nn.compact
     def __call__(self, x: jax.Array, *, deterministic: bool) -> jax.Array:
         if deterministic or self.rate == 0.0:
             return x
-        seed = jax.random.bits(self.make_rng("dropout"), (2,), jnp.uint32)
-        index = jnp.arange(x.size, dtype=jnp.uint32).reshape(x.shape)
-        bits = _mix32(_mix32(index * jnp.uint32(0x9E3779B9) + seed[0]) ^ seed[1])
-        keep = bits >= jnp.uint32(int(self.rate * 2 ** 32))
+        keep = noise.keep_mask(self.make_rng("dropout"), x.shape, self.rate,
+                               ghost_axis=self.ghost_axis)
         return jnp.where(keep, x / (1.0 - self.rate), jnp.zeros_like(x))

@@ -69,7 +69,7 @@ class EdgeSelector(nn.Module):
         self.mlp_hidden_bias = self.param("mlp_hidden_bias", torch_uniform(head_dim), (width,))
         self.mlp_out_kernel = self.param("mlp_out_kernel", torch_uniform(head_dim), (width,))
         self.mlp_out_bias = self.param("mlp_out_bias", torch_uniform(head_dim), ())
-        self.dropout = Dropout(config.dropout)
+        self.dropout = Dropout(config.dropout, ghost_axis=-2)      # (..., N, L, W)
 
     def edge_coefficients(self, edge_features: jax.Array, edge_embedding: tuple[jax.Array, jax.Array],
                           adjacency: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -10,11 +10,11 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from gst_jax.model.layers import layer_norm, torch_dense, torch_uniform
+from gst_jax.model.layers import Dropout, layer_norm, torch_dense, torch_uniform
 
 
 class TemporalConvReadout(nn.Module):
-    """Residual time convolutions, then time and feature MLPs: (B, T_obs, N, d) -> (B, P, N, out).
+    """Residual time convolutions, then time and feature MLPs: (..., T_obs, N, d) -> (..., P, N, out).
 
     Each of `num_convs` blocks adds relu(conv_t(LayerNorm(x))) to x, a kernel-3 convolution
     along time only (pedestrians never mix). Time is then mapped T_obs -> P -> P and features
@@ -39,10 +39,14 @@ class TemporalConvReadout(nn.Module):
                            kernel_init=torch_uniform(fan_in), bias_init=torch_uniform(fan_in),
                            name=f"time_conv_{i}")
             x = x + jax.nn.relu(conv(layer_norm(name=f"norm_{i}")(x)))
-        drop = nn.Dropout(self.dropout, deterministic=deterministic)
-        x = jnp.moveaxis(x, 1, -1)                                   # (B, N, d, T_obs)
+        dropout = Dropout(self.dropout)
+
+        def drop(y):
+            return dropout(y, deterministic=deterministic)
+
+        x = jnp.moveaxis(x, -3, -1)                                  # (..., N, d, T_obs)
         x = drop(jax.nn.relu(torch_dense(self.pred_len, self.obs_len, "time_linear_1")(x)))
         x = drop(jax.nn.relu(torch_dense(self.pred_len, self.pred_len, "time_linear_2")(x)))
-        x = jnp.moveaxis(x, -1, 1)                                   # (B, P, N, d)
+        x = jnp.moveaxis(x, -1, -3)                                  # (..., P, N, d)
         x = drop(jax.nn.relu(torch_dense(self.hidden, channels, "linear_1")(x)))
         return torch_dense(self.features_out, self.hidden, "linear_2")(x)

@@ -67,8 +67,8 @@ class Training:
 
     Attributes:
       init_state: () -> a fresh state; called only when there is no checkpoint to resume.
-      train_step: jitted (state, key, batch, hparams) -> (state, metrics); for a sweep every
-        argument but the batch carries the member axis.
+      train_step: (state, key, packed step, hparams) -> (state, metrics), a `TrainStep`; for
+        a sweep every argument but the packed step carries the member axis.
       hparams: epoch -> HParams (stacked for a sweep).
       seeds: one per member (one for a single run); they derive the step keys.
       member_names: None for a single run (unstacked state, scalar metrics).
@@ -121,12 +121,12 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
             hparams = training.hparams(epoch)
             epoch_start = time.perf_counter()
             loss_sum, non_finite, scenes = np.zeros(members), np.zeros(members, int), 0.0
-            batches = data.training_batches(train_set, batch_size=train_config.batch_size,
-                                            seed=train_config.seed, epoch=epoch)
+            steps = data.training_batches(train_set, batch_size=train_config.batch_size,
+                                          seed=train_config.seed, epoch=epoch)
             with count_compiles() as compiles:
-                for step, batch in enumerate(batches):
+                for step, packed in enumerate(steps):
                     state, metrics = training.train_step(state, training.step_keys(epoch, step),
-                                                         batch, hparams)
+                                                         packed, hparams)
                     loss = np.atleast_1d(np.asarray(metrics["loss"], np.float64))
                     finite = np.atleast_1d(np.asarray(metrics["finite"]))
                     if stop_on_non_finite and not finite.all():
@@ -135,10 +135,9 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                             f"(loss {loss[0]}); parameters of the last checkpoint (epoch "
                             f"{checkpointer.latest_epoch}) are kept in "
                             f"{workdir.path}/checkpoints")
-                    real = float(np.sum(batch.scene_mask))
-                    loss_sum += np.where(np.isfinite(loss), loss, 0.0) * real
+                    loss_sum += np.where(np.isfinite(loss), loss, 0.0) * packed.num_scenes
                     non_finite += ~finite
-                    scenes += real
+                    scenes += packed.num_scenes
                     done = (epoch - start_epoch) * steps_per_epoch + step + 1
                     seconds_per_step = (time.perf_counter() - run_start) / done
                     progress.step(epoch, train_config.epochs, step + 1, steps_per_epoch,
@@ -197,8 +196,7 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     seed = train_config.seed
     training = Training(
         init_state=lambda: create_train_state(model_config, parameter_key(seed)),
-        train_step=jax.jit(make_train_step(model_config, rotate=train_config.rotate),
-                           donate_argnums=0),
+        train_step=make_train_step(model_config, rotate=train_config.rotate),
         hparams=lambda epoch: hparams_for_epoch(model_config, train_config, epoch),
         seeds=(seed,))
     start = time.perf_counter()

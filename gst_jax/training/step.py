@@ -1,6 +1,15 @@
-"""The training loss and the jittable training step (docs/MODEL.md 3)."""
+"""The training loss and the training step over a size-packed step (docs/MODEL.md 3).
+
+A step averages the loss of its windows. They come in micro-batches, each padded only to
+its own size bucket (`gst_jax.data.pack_step`); the gradients of the micro-batches are
+summed, each window weighted 1 / (windows in the step), then Adam updates once. Every
+window's random draws depend on its key and its own coordinates only (`gst_jax.noise`), so
+the step's loss and gradients are those of the same windows computed in one padded batch.
+"""
 
 from __future__ import annotations
+
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -8,44 +17,86 @@ import optax
 
 from gst_jax import augment, losses
 from gst_jax.config import ModelConfig
-from gst_jax.data import SceneBatch
+from gst_jax.data import PackedStep, SceneBatch
 from gst_jax.graph import drop_partially_detected
 from gst_jax.rollout import rollout
 from gst_jax.training.state import HParams, TrainState, make_optimizer
 
 
 def training_loss(params, key: jax.Array, batch: SceneBatch, config: ModelConfig,
-                  hparams: HParams, *, rotate: bool) -> jax.Array:
-    """Mean over real scenes of the per-scene training loss (soft Gumbel samples, dropout on)."""
+                  hparams: HParams, *, rotate: bool, num_scenes: jax.Array | None = None
+                  ) -> jax.Array:
+    """Sum of the per-scene training losses of `batch`'s real scenes divided by `num_scenes`
+    (default: their count, i.e. their mean). Soft Gumbel samples, dropout on."""
     rotate_key, rollout_key = jax.random.split(key)
     if rotate:
         batch = augment.rotate(rotate_key, batch)
     batch = drop_partially_detected(batch, hparams.fully_detected_only)
     output = rollout(params, rollout_key, batch, config, hparams.controls, hard=False,
                      deterministic=False)
-    return losses.batch_loss(config, output, batch)
+    if num_scenes is None:
+        num_scenes = jnp.sum(batch.scene_mask)
+    return jnp.sum(losses.scene_losses(config, output, batch) * batch.scene_mask) / num_scenes
 
 
-def make_train_step(config: ModelConfig, *, rotate: bool = True):
-    """Build `train_step(state, key, batch, hparams) -> (state, metrics)`, not yet jitted.
+class TrainStep:
+    """`step(state, key, packed_step, hparams) -> (state, metrics)`: one optimiser step.
+
+    Two kinds of compiled program: the gradient of one micro-batch added to the running sum
+    (one per micro-batch shape, so an epoch compiles one per bucket it meets) and the Adam
+    update (one). With `members`, both are vmapped over a leading member axis of the state,
+    key and hparams (a sweep); the packed step is shared.
 
     A step whose loss or gradients are not finite leaves the state unchanged and reports
     `finite = False`; the epoch loop decides what that means (stop, or count and go on).
     """
-    optimizer = make_optimizer()
 
-    def train_step(state: TrainState, key: jax.Array, batch: SceneBatch, hparams: HParams):
-        loss, grads = jax.value_and_grad(training_loss)(state.params, key, batch, config,
-                                                        hparams, rotate=rotate)
-        finite = jnp.isfinite(loss) & jnp.all(jnp.array(
-            [jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))
-        opt_state = state.opt_state._replace(
-            hyperparams={**state.opt_state.hyperparams, "learning_rate": hparams.learning_rate})
-        updates, new_opt_state = optimizer.update(grads, opt_state, state.params)
-        new_state = TrainState(params=optax.apply_updates(state.params, updates),
-                               opt_state=new_opt_state, step=state.step + 1)
-        state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, state)
-        metrics = {"loss": loss, "finite": finite, "grad_norm": optax.tree.norm(grads)}
-        return state, metrics
+    def __init__(self, config: ModelConfig, *, rotate: bool = True, members: bool = False):
+        optimizer = make_optimizer()
 
-    return train_step
+        def accumulate(params, key, batch, hparams, num_scenes, loss_sum, grad_sum):
+            loss, grads = jax.value_and_grad(training_loss)(
+                params, key, batch, config, hparams, rotate=rotate, num_scenes=num_scenes)
+            return loss_sum + loss, jax.tree.map(jnp.add, grad_sum, grads)
+
+        def update(state: TrainState, loss, grads, hparams: HParams):
+            finite = jnp.isfinite(loss) & jnp.all(jnp.array(
+                [jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))
+            opt_state = state.opt_state._replace(hyperparams={
+                **state.opt_state.hyperparams, "learning_rate": hparams.learning_rate})
+            updates, new_opt_state = optimizer.update(grads, opt_state, state.params)
+            new_state = TrainState(params=optax.apply_updates(state.params, updates),
+                                   opt_state=new_opt_state, step=state.step + 1)
+            state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, state)
+            return state, {"loss": loss, "finite": finite, "grad_norm": optax.tree.norm(grads)}
+
+        def zeros(params):
+            return jnp.zeros((), jnp.float32), jax.tree.map(jnp.zeros_like, params)
+
+        if members:
+            accumulate = jax.vmap(accumulate, in_axes=(0, 0, None, 0, None, 0, 0))
+            update = jax.vmap(update)
+            zeros = jax.vmap(zeros)
+        self._accumulate = jax.jit(accumulate, donate_argnums=(5, 6))
+        self._update = jax.jit(update, donate_argnums=0)
+        self._zeros = jax.jit(zeros)
+
+    def loss_and_grads(self, params, key: jax.Array, step: PackedStep, hparams: HParams
+                       ) -> tuple[jax.Array, Any]:
+        """The step's mean loss and its gradient, summed over the micro-batches."""
+        num_scenes = jnp.float32(step.num_scenes)
+        loss, grads = self._zeros(params)
+        for batch in step.micro_batches:
+            loss, grads = self._accumulate(params, key, batch, hparams, num_scenes, loss, grads)
+        return loss, grads
+
+    def __call__(self, state: TrainState, key: jax.Array, step: PackedStep, hparams: HParams
+                 ) -> tuple[TrainState, dict]:
+        loss, grads = self.loss_and_grads(state.params, key, step, hparams)
+        return self._update(state, loss, grads, hparams)
+
+
+def make_train_step(config: ModelConfig, *, rotate: bool = True,
+                    members: bool = False) -> TrainStep:
+    """The training step of `config` (see TrainStep); already jit-compiled per shape."""
+    return TrainStep(config, rotate=rotate, members=members)

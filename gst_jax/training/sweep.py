@@ -1,8 +1,8 @@
 """Ablation sweeps as one vmapped program: sparsity n x detection x seeds (paper Figs. 4-6).
 
 Every member (n, fully-detected-only, seed) shares one parameter layout (head slots sized for
-the largest n) and one compiled `jax.jit(jax.vmap(train_step))`: n, the ghost switch and the
-"F" switch are per-member traced values, the data batch is shared. Member k's keys are those of
+the largest n) and one vmapped training step (`make_train_step(..., members=True)`): n, the
+ghost switch and the "F" switch are per-member traced values, the packed step is shared. Member k's keys are those of
 a single run with its seed, so it trains exactly as that run would on the sweep's data order
 (the order of the first seed). A member whose step is not finite keeps its parameters for
 that step and the count is reported; the others go on.
@@ -47,12 +47,6 @@ def member_hparams(config: ModelConfig, train_config: TrainConfig, members: Sequ
                   for m in members])
 
 
-def make_sweep_step(config: ModelConfig, *, rotate: bool = True):
-    """`jit(vmap(train_step))` over (state, key, hparams) with the batch shared."""
-    return jax.jit(jax.vmap(make_train_step(config, rotate=rotate), in_axes=(0, 0, None, 0)),
-                   donate_argnums=0)
-
-
 def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
               members: Sequence[Member], workdir: str | WorkDir, *, eval_samples: int = 20,
               max_eval_windows: int = 0, progress: Progress | None = None) -> dict:
@@ -65,7 +59,7 @@ def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainC
     workdir.prepare(sweep_config)
     training = Training(
         init_state=lambda: initial_states(config, members),
-        train_step=make_sweep_step(config, rotate=train_config.rotate),
+        train_step=make_train_step(config, rotate=train_config.rotate, members=True),
         hparams=lambda epoch: member_hparams(config, train_config, members, epoch),
         seeds=tuple(m.seed for m in members), member_names=tuple(m.name for m in members))
     start = time.perf_counter()
