@@ -4,7 +4,7 @@
 
 Three ways to take the same optimiser steps for every configuration (wall time, compilation
 included, as a user would pay it):
-  vmapped     one `jit(vmap(train_step))` over the stacked members (gst_jax.training.sweep);
+  vmapped     one vmapped training step over the stacked members (gst_jax.training.sweep);
   sequential  the same traced-n program (head slots for the largest n), one member at a time;
   separate    each configuration as its own single run (head slots = max(n, 1)), compiled
               for itself, one after another.
@@ -28,15 +28,16 @@ def timed_steps(step, state, batches, keys_for, hparams):
     """(compile_s, run_s) of taking every batch once; compile = first call of each shape."""
     compile_s = run_s = 0.0
     seen = set()
-    for index, batch in enumerate(batches):
+    for index, packed in enumerate(batches):
         start = time.perf_counter()
-        state, metrics = step(state, keys_for(index), batch, hparams)
+        state, metrics = step(state, keys_for(index), packed, hparams)
         jax.block_until_ready(metrics["loss"])
         elapsed = time.perf_counter() - start
-        if batch.shape in seen:
+        shapes = {b.shape for b in packed.micro_batches}
+        if shapes <= seen:
             run_s += elapsed
         else:
-            seen.add(batch.shape)
+            seen |= shapes
             compile_s += elapsed
     return compile_s, run_s
 
@@ -51,7 +52,7 @@ def main() -> None:
     args = parser.parse_args()
 
     members = sweep_members.plan_members(cli.parse_edge_heads(args.edge_heads), "partial",
-                                 [args.seed + i for i in range(args.seeds)])
+                                         [args.seed + i for i in range(args.seeds)])
     config = sweep_members.sweep_model_config(ModelConfig(), members)
     train_config = TrainConfig(seed=args.seed)
     window_set = data.load_split(DataConfig(scene=args.scene), "train")
@@ -78,15 +79,16 @@ def main() -> None:
         return compile_s, run_s
 
     way("vmapped", lambda: timed_steps(
-        sweep.make_sweep_step(config), sweep.initial_states(config, members), batches,
+        train_step.make_train_step(config, members=True), sweep.initial_states(config, members),
+        batches,
         lambda i: jax.random.split(jax.random.fold_in(key, i), len(members)),
         sweep.member_hparams(config, train_config, members, 1)))
-    shared_step = jax.jit(train_step.make_train_step(config), donate_argnums=0)
+    shared_step = train_step.make_train_step(config)
     way("sequential", lambda: one_after_another(
         lambda m: sweep_members.member_config(config, m), lambda alone: shared_step))
     way("separate", lambda: one_after_another(                      # head slots max(n, 1)
         lambda m: ModelConfig(num_edge_heads=m.edge_heads),
-        lambda alone: jax.jit(train_step.make_train_step(alone), donate_argnums=0)))
+        lambda alone: train_step.make_train_step(alone)))
 
     for row in rows:
         row.update(record("sweep", scene=args.scene, members=len(members), steps=args.steps,
