@@ -6,8 +6,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
+import os
 import sys
+import warnings
+from pathlib import Path
 from typing import Callable
+
+import jax
 
 from gst_jax.config import (EDGE_HEAD_CHOICES, OUTPUTS, PROTOCOLS, SCENES, TEMPORAL_MODELS,
                             DataConfig, ModelConfig, TrainConfig)
@@ -21,16 +27,48 @@ _TRAIN_DEFAULTS = TrainConfig()
 USER_ERRORS = (DataError, RunError, NonFiniteError)
 
 
+def positive_int(text: str) -> int:
+    """An argparse type: an integer of at least 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def count(text: str) -> int:
+    """An argparse type: an integer of at least 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number above 0."""
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
 def parser(prog: str, doc: str) -> argparse.ArgumentParser:
     """A command's parser, described by the first paragraph of its module docstring."""
     return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.split("\n\n")[0],
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
+# Compiled programs are kept here across runs (unless JAX_COMPILATION_CACHE_DIR says where):
+# a resumed or repeated training compiles nothing it compiled before.
+COMPILATION_CACHE = Path.home() / ".cache" / "gst_jax" / "xla"
+
+
 def run(command: Callable[[argparse.Namespace], None], parser: argparse.ArgumentParser,
         argv: list[str] | None) -> None:
     """Parse `argv` and run `command`; a user error ends the process with one line."""
     args = parser.parse_args(argv)
+    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
+    warnings.formatwarning = lambda message, *_, **__: f"warning: {message}\n"
     try:
         command(args)
     except USER_ERRORS as error:
@@ -54,6 +92,9 @@ def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False) -> 
     group.add_argument("--data-dir", default=None,
                        help="folder holding eth_ucy/ and trajnetpp/ (default: "
                             f"{default or 'the bundled data/'})")
+    group.add_argument("--drop-off-grid", action="store_true",
+                       help="drop rows whose frame is off their file's frame grid (a warning "
+                            "counts them) instead of refusing the file")
 
 
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
@@ -82,16 +123,17 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
     """The schedule's flags. sweep: --seeds (a count) and a three-way --fully-detected-only."""
     group = parser.add_argument_group("training")
     d = _TRAIN_DEFAULTS
-    group.add_argument("--epochs", type=int, default=d.epochs, help=f"epochs (default: {d.epochs})")
-    group.add_argument("--batch-size", type=int, default=d.batch_size,
+    group.add_argument("--epochs", type=positive_int, default=d.epochs,
+                       help=f"epochs (default: {d.epochs})")
+    group.add_argument("--batch-size", type=positive_int, default=d.batch_size,
                        help=f"scenes averaged per optimiser step (default: {d.batch_size})")
-    group.add_argument("--learning-rate", type=float, default=d.learning_rate,
+    group.add_argument("--learning-rate", type=positive_float, default=d.learning_rate,
                        help=f"initial Adam learning rate, x{d.lr_decay} every {d.lr_decay_every} "
                             f"epochs (default: {d.learning_rate})")
     if sweep:
         group.add_argument("--seed", type=int, default=d.seed,
                            help=f"first seed; also fixes the shared data order (default: {d.seed})")
-        group.add_argument("--seeds", type=int, default=1,
+        group.add_argument("--seeds", type=positive_int, default=1,
                            help="seeds per configuration: seed, seed+1, ... (default: 1)")
         group.add_argument("--fully-detected-only", default="partial", choices=tuple(DETECTION),
                            help="partial: observe everyone (paper default); full: only fully "
@@ -101,13 +143,13 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
                            help=f"random seed (default: {d.seed})")
         group.add_argument("--fully-detected-only", action="store_true",
                            help="drop partially detected pedestrians (the paper's 'F' baseline)")
-        group.add_argument("--eval-every", type=int, default=d.eval_every,
+        group.add_argument("--eval-every", type=count, default=d.eval_every,
                            help="epochs between validation AOE/FOE, with a protocol that has a "
                                 f"validation split (default: {d.eval_every}; 0 = never)")
     group.add_argument("--no-rotate", action="store_true", help="disable random rotation")
-    group.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
+    group.add_argument("--checkpoint-every", type=positive_int, default=d.checkpoint_every,
                        help=f"epochs between checkpoints (default: {d.checkpoint_every})")
-    group.add_argument("--max-train-windows", type=int, default=0,
+    group.add_argument("--max-train-windows", type=count, default=0,
                        help="train on the first k windows only (smoke tests; default: all)")
 
 
@@ -134,7 +176,8 @@ def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> Dat
     base = base or DataConfig()
     return dataclasses.replace(base, scene=args.scene or base.scene,
                                protocol=args.protocol or base.protocol,
-                               data_dir=args.data_dir or base.data_dir)
+                               data_dir=args.data_dir or base.data_dir,
+                               drop_off_grid=args.drop_off_grid or base.drop_off_grid)
 
 
 def model_config(args: argparse.Namespace) -> ModelConfig:

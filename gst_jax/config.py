@@ -8,6 +8,7 @@ the ghost switch) travel as arrays next to the parameters, never through these c
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Literal
 
 SCENES = ("eth", "hotel", "univ", "zara1", "zara2", "lcas", "wildtrack")
@@ -35,6 +36,8 @@ class DataConfig:
       train_fraction: fraction of each file's windows used for training (paper: 0.8).
       val_fraction: with 'paper-val', fraction of each file's train windows held out.
       data_dir: folder holding `eth_ucy/` and `trajnetpp/`; None = the bundled `data/`.
+      drop_off_grid: drop rows whose frame is off a file's grid (counted in a warning)
+        instead of refusing the file.
     """
 
     scene: str = "eth"
@@ -44,6 +47,7 @@ class DataConfig:
     train_fraction: float = 0.8
     val_fraction: float = 0.1
     data_dir: str | None = None
+    drop_off_grid: bool = False
 
     @property
     def seq_len(self) -> int:
@@ -142,3 +146,15 @@ class TrainConfig:
     checkpoint_every: int = 5
     eval_every: int = 10
     max_train_windows: int = 0
+
+    def __post_init__(self):
+        for name in ("epochs", "batch_size", "checkpoint_every", "lr_decay_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        for name in ("eval_every", "max_train_windows"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be 0 or more, got {getattr(self, name)}")
+        for name in ("learning_rate", "lr_decay", "tau_start", "tau_end"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value}")

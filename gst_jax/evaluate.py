@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_data_flags(parser, of_run=True)
     parser.add_argument("--split", default="test", choices=("test", "val", "train"),
                         help="which split to evaluate (default: test)")
-    parser.add_argument("--samples", type=int, default=20,
+    parser.add_argument("--samples", type=cli.positive_int, default=20,
                         help="K: runs of the paper protocol / samples for best-of-K and KDE")
     parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation samples")
     parser.add_argument("--epoch", type=int, default=None,
@@ -39,18 +39,16 @@ def evaluate(args) -> None:
     if (args.run or args.workdir) is None:
         raise SystemExit("error: give a work directory (positional RUN or --workdir)")
     run = load_run(args.run or args.workdir, args.epoch)
+    run.workdir.check_writable()
     data_config = cli.data_config(args, base=run.data_config)
     result = evaluate_run(run, data_config, args.split, num_samples=args.samples,
                           seed=args.seed, with_kde=not args.no_kde)
+    print(json.dumps(result, indent=2) if args.json else format_table(result), flush=True)
     markdown = format_markdown(result)
     written = run.workdir.write_evaluation(data_config, args.split, run.epoch, result, markdown)
     if args.markdown:
         Path(args.markdown).write_text(markdown)
-    if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        print(format_table(result))
-        cli.say(f"\nwritten: {written}, .md")
+    cli.say(f"\nwritten: {written}, .md")
 
 
 if __name__ == "__main__":

@@ -33,8 +33,9 @@ def aoe_foe_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
     """
     errors = offset_errors(pred, truth)
     mask = np.asarray(mask, np.float64)
-    return {"aoe_sum": np.sum(errors.mean(axis=2) * mask, axis=(1, 2)),
-            "foe_sum": np.sum(errors[:, :, -1] * mask, axis=(1, 2)),
+    # Pedestrians outside the mask may have no prediction (NaN): they add exactly nothing.
+    return {"aoe_sum": np.sum(np.where(mask > 0, errors.mean(axis=2) * mask, 0.0), axis=(1, 2)),
+            "foe_sum": np.sum(np.where(mask > 0, errors[:, :, -1] * mask, 0.0), axis=(1, 2)),
             "count": np.sum(mask)}
 
 
@@ -42,8 +43,8 @@ def min_ade_fde_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> d
     """Best-of-K: per pedestrian the smallest ADE and (independently) the smallest FDE, summed."""
     errors = offset_errors(pred, truth)
     mask = np.asarray(mask, np.float64)
-    return {"min_ade_sum": np.sum(errors.mean(axis=2).min(axis=0) * mask),
-            "min_fde_sum": np.sum(errors[:, :, -1].min(axis=0) * mask)}
+    return {"min_ade_sum": np.sum(np.where(mask > 0, errors.mean(axis=2).min(axis=0) * mask, 0.0)),
+            "min_fde_sum": np.sum(np.where(mask > 0, errors[:, :, -1].min(axis=0) * mask, 0.0))}
 
 
 def kde_log_density(samples: np.ndarray, point: np.ndarray) -> float:

@@ -32,7 +32,8 @@ def main(argv: list[str] | None = None) -> None:
         sub.add_argument("--window", type=int, default=0, help="test window index (default: 0)")
         sub.add_argument("--seed", type=int, default=0, help="seed of the samples (default: 0)")
         if name == "scene":
-            sub.add_argument("--samples", type=int, default=20, help="K (default: 20)")
+            sub.add_argument("--samples", type=cli.positive_int, default=20,
+                             help="K (default: 20)")
             sub.add_argument("--pdf", action="store_true", help="also write a PDF")
         else:
             sub.add_argument("--agent", type=int, default=0, help="pedestrian index (default: 0)")

@@ -26,12 +26,14 @@ from gst_jax.rollout import observed_edge_probabilities, rollout
 class Prediction:
     """K sampled futures of B scenes. S = obs_len + pred_len - 1 selector calls.
 
-    positions: (K, B, P, N, 2) absolute positions, zero for pedestrians not predicted.
+    positions: (K, B, P, N, 2) positions (the frame of the observations); NaN for pedestrians
+      not predicted, so that nobody mistakes them for predictions.
     displacements: (K, B, P, N, 2) per-step displacements.
     mu, sigma: (K, B, P, N, 2); corr: (K, B, P, N) Gaussian parameters (GST (P) samples them).
     sampled_adjacency: (K, B, S, N, N+1) sampled neighbours per target (ghost last), or None.
     edge_probs: (K, B, S, N, G, N+1) edge probabilities per head slot, or None.
-    predicted_mask: (B, N) 1 for pedestrians detected at the last observed step.
+    predicted_mask: (B, N) 1 for the pedestrians predicted: those detected at both of the
+      last two observed steps (their last displacement exists; docs/MODEL.md 2.3).
     """
 
     positions: jax.Array
@@ -50,12 +52,19 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
 
     `controls` overrides the traced switches (n, ghost, tau); by default the config's n and
     ghost with tau = 0.03. `with_graph=False` drops the per-step graphs (they dominate memory
-    for large K and N) when only trajectories are needed.
+    for large K and N) when only trajectories are needed. A batch holds T = obs_len observed
+    steps (`make_batch`), or obs_len + pred_len (windows with their future, evaluation).
     """
+    if num_samples < 1:
+        raise ValueError(f"num_samples must be at least 1, got {num_samples}")
+    steps = (config.obs_len, config.obs_len + config.pred_len)
 
     @jax.jit
     def predict(params, key: jax.Array, batch: SceneBatch,
                 controls: Controls | None = None) -> Prediction:
+        if batch.positions.shape[1] not in steps:
+            raise ValueError(f"the batch has {batch.positions.shape[1]} steps; expected "
+                             f"{steps[0]} observed steps (or {steps[1]} with the future)")
         if controls is None:
             controls = Controls.from_config(config)
 
@@ -72,7 +81,8 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
             jax.random.split(key, num_samples))
         keep = batch.node_mask[:, config.obs_len - 1]
         last_position = batch.positions[:, config.obs_len - 1] * keep[..., None]
-        positions = (last_position[:, None] + jnp.cumsum(displacements, axis=2)) * keep[:, None, :, None]
+        positions = jnp.where(keep[:, None, :, None] > 0,
+                              last_position[:, None] + jnp.cumsum(displacements, axis=2), jnp.nan)
         return Prediction(positions=positions, displacements=displacements, mu=mu, sigma=sigma,
                           corr=corr, sampled_adjacency=adjacency, edge_probs=probs,
                           predicted_mask=keep)

@@ -15,11 +15,15 @@ A model is named by a work directory (or one of its `checkpoints/<epoch>`), by
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
+import os
+import warnings
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NamedTuple, Sequence
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 from gst_jax import pretrained
@@ -36,49 +40,127 @@ class RunError(Exception):
     """A work directory or model name that cannot be used; the message says why."""
 
 
-class Checkpointer:
-    """Saves `{state, config}` under `<workdir>/checkpoints/<epoch>`; restores the latest.
+class Restored(NamedTuple):
+    """A checkpoint read back: the state, the run's config, the metrics records up to its
+    epoch (one per epoch), and the epoch."""
 
-    Saving is synchronous: a checkpoint that `save` returned from is complete on disk, so a
-    process killed at any later moment resumes from it.
+    state: Any
+    config: dict
+    records: list
+    epoch: int
+
+
+class Checkpointer:
+    """Saves `{state, config, metrics}` under `<workdir>/checkpoints/<epoch>`.
+
+    Saving is synchronous and refuses a non-finite state: a checkpoint that `save` returned
+    from is complete on disk, so a process killed at any later moment resumes from it. Its
+    files' SHA-256 is recorded in `checkpoints/checksums.json`; `restore` verifies it and,
+    with `fall_back`, goes back to the newest checkpoint that is intact (with a warning).
     """
 
     def __init__(self, directory: Path, max_to_keep: int = 3, *, create: bool = True):
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=create,
                                                enable_async_checkpointing=False)
-        self._manager = ocp.CheckpointManager(directory.absolute(), options=options)
+        self._directory = directory.absolute()
+        self._manager = ocp.CheckpointManager(self._directory, options=options)
+        self._checksums = self._directory / "checksums.json"
 
     @property
     def latest_epoch(self) -> int | None:
         return self._manager.latest_step()
 
-    def save(self, epoch: int, state: Any, config: dict) -> None:
+    def save(self, epoch: int, state: Any, config: dict, records: list) -> None:
+        if not all(bool(np.all(np.isfinite(leaf))) for leaf in jax.tree.leaves(state)
+                   if np.issubdtype(np.asarray(leaf).dtype, np.floating)):
+            raise RunError(f"refusing to save a non-finite training state (epoch {epoch})")
         self._manager.save(epoch, args=ocp.args.Composite(
-            state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config)))
+            state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),
+            metrics=ocp.args.JsonSave(records)))
         self._manager.wait_until_finished()
+        checksums = self._read_checksums()
+        checksums[str(epoch)] = self._checksum(epoch)
+        kept = {str(e) for e in self._manager.all_steps()}
+        _write_atomically(self._checksums, json.dumps(
+            {e: c for e, c in checksums.items() if e in kept}, indent=1))
 
-    def restore(self, like_state: Any, epoch: int | None = None) -> tuple[Any, dict, int]:
-        """Restore `(state, config, epoch)`; `like_state` (arrays or their abstract shapes)
-        gives the tree structure and dtypes."""
-        epoch = self._epoch(epoch)
+    def restore(self, like_state: Any, epoch: int | None = None, *,
+                fall_back: bool = False) -> Restored:
+        """Restore `epoch` (default: the latest); `like_state` (arrays or their abstract
+        shapes) gives the tree structure and dtypes. With `fall_back`, a checkpoint that fails
+        its checksum or cannot be read is skipped for the one before it."""
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like_state)
-        restored = self._manager.restore(epoch, args=ocp.args.Composite(
-            state=ocp.args.StandardRestore(abstract), config=ocp.args.JsonRestore()))
-        return restored.state, restored.config, epoch
+        candidates = [epoch] if epoch is not None else sorted(self._manager.all_steps(),
+                                                              reverse=True)
+        problems = []
+        for candidate in candidates:
+            problem = self._verify(candidate)
+            if problem is None:
+                try:
+                    restored = self._manager.restore(candidate, args=ocp.args.Composite(
+                        state=ocp.args.StandardRestore(abstract), config=ocp.args.JsonRestore(),
+                        metrics=ocp.args.JsonRestore()))
+                except Exception as error:  # orbax raises many kinds on damaged files
+                    problem = f"unreadable ({type(error).__name__})"
+            if problem is None:
+                if problems:
+                    warnings.warn(f"{self._directory}: using the checkpoint of epoch "
+                                  f"{candidate}; skipped " + "; ".join(problems), stacklevel=2)
+                return Restored(restored.state, restored.config, list(restored.metrics),
+                                candidate)
+            problems.append(f"epoch {candidate}: {problem}")
+            if not fall_back:
+                break
+        raise RunError(f"no usable checkpoint in {self._directory}: " + "; ".join(problems)
+                       if problems else f"no checkpoint in {self._directory}")
 
     def read_config(self, epoch: int | None = None) -> dict:
-        """The JSON config stored with a checkpoint, without touching the arrays."""
-        return self._manager.restore(self._epoch(epoch), args=ocp.args.Composite(
-            config=ocp.args.JsonRestore())).config
+        """The JSON config stored with checkpoint `epoch`, by default the newest readable one
+        (arrays untouched)."""
+        epochs = [epoch] if epoch is not None else sorted(self._manager.all_steps(), reverse=True)
+        for epoch in epochs:
+            try:
+                return self._manager.restore(epoch, args=ocp.args.Composite(
+                    config=ocp.args.JsonRestore())).config
+            except Exception:  # a damaged checkpoint: the one before it may do
+                continue
+        raise RunError(f"no readable checkpoint in {self._directory}")
 
-    def _epoch(self, epoch: int | None) -> int:
-        epoch = self.latest_epoch if epoch is None else epoch
-        if epoch is None:
-            raise RunError(f"no checkpoint under {self._manager.directory}")
-        return epoch
+    def discard_after(self, epoch: int) -> None:
+        """Delete the checkpoints of later epochs (damaged ones that a resume skipped)."""
+        for later in [e for e in self._manager.all_steps() if e > epoch]:
+            self._manager.delete(later)
 
     def close(self) -> None:
         self._manager.close()
+
+    def _checksum(self, epoch: int) -> str:
+        digest = hashlib.sha256()
+        folder = self._directory / str(epoch)
+        for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+            digest.update(str(path.relative_to(folder)).encode())
+            digest.update(path.read_bytes())
+        return digest.hexdigest()
+
+    def _read_checksums(self) -> dict:
+        try:
+            return json.loads(self._checksums.read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            return {}
+
+    def _verify(self, epoch: int) -> str | None:
+        """None if the checkpoint's files match the checksum recorded when it was saved (or
+        none was recorded: a crash between the save and the record); else the problem."""
+        expected = self._read_checksums().get(str(epoch))
+        if expected is not None and expected != self._checksum(epoch):
+            return "its files do not match the checksum recorded when it was saved"
+        return None
+
+
+def _write_atomically(path: Path, text: str) -> None:
+    temporary = path.with_suffix(path.suffix + ".tmp")
+    temporary.write_text(text)
+    os.replace(temporary, path)
 
 
 def run_config(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
@@ -130,13 +212,25 @@ class WorkDir:
         return self.path / "figures"
 
     def prepare(self, config: dict) -> None:
-        """Create the work dir, or check that an existing one belongs to the same run."""
+        """Create the work dir, or check that an existing one belongs to the same run (its
+        config.json and, should that be gone, the config stored with its checkpoints)."""
         config_path = self.path / "config.json"
         if config_path.exists():
             if json.loads(config_path.read_text()) != config:
                 raise RunError(f"{self.path} holds a run with a different configuration "
                                f"({config_path}); choose another --workdir or delete it")
             return
+        if (self.path / "checkpoints").is_dir():
+            checkpointer = self.checkpointer(create=False)
+            try:
+                stored = (config if checkpointer.latest_epoch is None
+                          else checkpointer.read_config())
+            finally:
+                checkpointer.close()
+            if stored != config:
+                raise RunError(f"{self.path} holds checkpoints of a run with a different "
+                               "configuration (its config.json is missing); choose another "
+                               "--workdir or delete it")
         self.path.mkdir(parents=True, exist_ok=True)
         config_path.write_text(json.dumps(config, indent=2) + "\n")
 
@@ -159,11 +253,10 @@ class WorkDir:
         with self.metrics_path.open("a") as f:
             f.write(json.dumps(record) + "\n")
 
-    def truncate_metrics(self, last_epoch: int) -> None:
-        """Drop the records of epochs after `last_epoch` (what a killed run wrote after the
-        checkpoint it resumes from)."""
-        kept = [r for r in self.read_metrics() if r.get("epoch", 0) <= last_epoch]
-        self.metrics_path.write_text("".join(json.dumps(r) + "\n" for r in kept))
+    def write_metrics(self, records: list[dict]) -> None:
+        """Replace metrics.jsonl by `records` (a resume: those of its checkpoint, which drop
+        what a killed run wrote after it and restore what it did not get to write)."""
+        _write_atomically(self.metrics_path, "".join(json.dumps(r) + "\n" for r in records))
 
     def training_time_s(self) -> float:
         """Sum of the epoch times: the training's wall time across resumes."""
@@ -180,6 +273,13 @@ class WorkDir:
     def read_evaluation(self, data_config: DataConfig, split: str, epoch: int) -> dict | None:
         path = self.evaluation_path(data_config, split, epoch)
         return json.loads(path.read_text()) if path.exists() else None
+
+    def check_writable(self) -> None:
+        """Refuse early where results could not be written (a read-only work directory)."""
+        folder = self.path / "eval" if (self.path / "eval").is_dir() else self.path
+        if not os.access(folder, os.W_OK):
+            raise RunError(f"cannot write in {folder}; evaluate a writable copy, or print the "
+                           "result with --json")
 
     def write_evaluation(self, data_config: DataConfig, split: str, epoch: int, result: dict,
                          markdown: str) -> Path:
@@ -239,7 +339,8 @@ def load_run(path: str | Path, epoch: int | None = None) -> Run:
             names = ", ".join(Member(**m).name for m in config["members"])
             raise RunError(f"{path} is a sweep: name one member as {path}:MEMBER ({names})")
         model_config = ModelConfig(**config["model"])
-        state, _, epoch = checkpointer.restore(abstract_train_state(model_config), epoch)
+        state, _, _, epoch = checkpointer.restore(abstract_train_state(model_config), epoch,
+                                                  fall_back=epoch is None)
     finally:
         checkpointer.close()
     return Run(name=str(path), model_config=model_config,
@@ -266,7 +367,7 @@ def load_member(path: str | Path, name: str, epoch: int | None = None) -> Run:
             raise RunError(f"{path} has no member {name!r}; it has {', '.join(names)}")
         model_config = ModelConfig(**config["model"])
         like = stacked_shape(abstract_train_state(model_config), len(members))
-        state, _, epoch = checkpointer.restore(like, epoch)
+        state, _, _, epoch = checkpointer.restore(like, epoch, fall_back=epoch is None)
     finally:
         checkpointer.close()
     member = members[names.index(name)]

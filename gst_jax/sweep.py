@@ -24,9 +24,9 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_data_flags(parser)
     cli.add_model_flags(parser, several_edge_heads=True)
     cli.add_train_flags(parser, sweep=True)
-    parser.add_argument("--eval-samples", type=int, default=20,
+    parser.add_argument("--eval-samples", type=cli.positive_int, default=20,
                         help="K samples (runs) per member in the evaluation (default: 20)")
-    parser.add_argument("--max-eval-windows", type=int, default=0,
+    parser.add_argument("--max-eval-windows", type=cli.count, default=0,
                         help="evaluate on the first k test windows only (smoke tests; "
                              "default: all)")
     cli.add_output_flags(parser, workdir_help="where checkpoints, metrics.jsonl, results and "

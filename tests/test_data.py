@@ -271,7 +271,7 @@ def test_make_batch_from_nan_marked_observations():
     (np.zeros((8, 3, 2)), r"shape \(B, T_obs, N, 2\)"),
     (np.zeros((1, 8, 3, 3)), r"shape \(B, T_obs, N, 2\)"),
     (np.full((2, 8, 3, 2), np.nan), r"scene\(s\) \[0, 1\] have no detected pedestrian"),
-    (np.array([[[[np.nan, 1.0]]]]), "one NaN coordinate"),
+    (np.array([[[[np.nan, 1.0]]] * 8]), "one NaN coordinate"),
     (np.zeros((1, 0, 3, 2)), "empty axis"),
 ])
 def test_make_batch_errors(xy, problem):

@@ -19,7 +19,7 @@ def random_run(tmp_path_factory):
     model, data_config, train_config = ModelConfig(), DataConfig(scene="zara1"), TrainConfig()
     state = create_train_state(model, jax.random.key(0))
     checkpointer = WorkDir(workdir).checkpointer()
-    checkpointer.save(1, state, run_config(model, data_config, train_config))
+    checkpointer.save(1, state, run_config(model, data_config, train_config), [])
     checkpointer.close()
     (workdir / "metrics.jsonl").write_text("".join(
         json.dumps({"epoch": e, "loss": 2.0 / e, "val_aoe": 1.0 / e, "val_foe": 2.0 / e}) + "\n"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -14,7 +15,7 @@ import pytest
 
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-from gst_jax.runs import load_run
+from gst_jax.runs import Checkpointer, RunError, WorkDir, load_run
 from gst_jax.training.loop import NonFiniteError, fit
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
@@ -179,3 +180,101 @@ def test_validation_split_is_evaluated_during_training(tmp_path):
                .splitlines()]
     assert [r["epoch"] for r in records] == [1, 2]
     assert all(r["val_aoe"] > 0 and r["val_foe"] >= r["val_aoe"] * 0.5 for r in records)
+
+
+# --- faults: every kind ends with one metrics line per epoch and the parameters of an ---
+# --- uninterrupted run, or a clear refusal. The process "dies" by an exception raised ---
+# --- at the exact point (saves are synchronous, so the disk is as a SIGKILL leaves it). ---
+
+FAULT_RUN = TrainConfig(epochs=3, batch_size=8, max_train_windows=24, checkpoint_every=1)
+ZARA1 = DataConfig(scene="zara1")
+
+
+class _Killed(BaseException):
+    """The training process dies here."""
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    workdir = tmp_path_factory.mktemp("uninterrupted")
+    fit(MODEL, ZARA1, FAULT_RUN, workdir)
+    return load_run(workdir)
+
+
+def _kill_at_save(monkeypatch, epoch: int, *, before: bool) -> None:
+    """Die at the checkpoint of `epoch`, just before or just after it is written."""
+    save = Checkpointer.save
+
+    def save_then_die(self, this_epoch, *args):
+        if this_epoch == epoch and before:
+            raise _Killed
+        save(self, this_epoch, *args)
+        if this_epoch == epoch:
+            raise _Killed
+
+    monkeypatch.setattr(Checkpointer, "save", save_then_die)
+
+
+def _assert_like_uninterrupted(workdir: Path, uninterrupted) -> None:
+    assert [r["epoch"] for r in WorkDir(workdir).read_metrics()] == [1, 2, 3]
+    run = load_run(workdir)
+    assert run.epoch == 3
+    for x, y in zip(jax.tree.leaves(run.params), jax.tree.leaves(uninterrupted.params)):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("epoch, before", [(1, True), (2, False)])
+def test_a_kill_at_a_checkpoint_resumes_with_one_line_per_epoch(tmp_path, monkeypatch,
+                                                                 uninterrupted, epoch, before):
+    """Before the first checkpoint; after a checkpoint and before its metrics line."""
+    with monkeypatch.context() as patched:
+        _kill_at_save(patched, epoch, before=before)
+        with pytest.raises(_Killed):
+            fit(MODEL, ZARA1, FAULT_RUN, tmp_path)
+    lines = [r["epoch"] for r in WorkDir(tmp_path).read_metrics()]
+    assert lines == list(range(1, epoch))              # the dying epoch's line is missing
+    fit(MODEL, ZARA1, FAULT_RUN, tmp_path)
+    _assert_like_uninterrupted(tmp_path, uninterrupted)
+
+
+def _damage(folder: Path, how: str) -> None:
+    """Truncate, or flip bytes in the middle of, the largest file of a checkpoint."""
+    path = max((p for p in folder.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+    content = bytearray(path.read_bytes())
+    if how == "truncate":
+        del content[len(content) // 2:]
+    else:
+        middle = len(content) // 2
+        content[middle:middle + 4] = bytes(b ^ 0xFF for b in content[middle:middle + 4])
+    path.write_bytes(bytes(content))
+
+
+@pytest.mark.parametrize("how", ["truncate", "flip"])
+def test_a_damaged_latest_checkpoint_is_skipped_for_the_one_before(tmp_path, monkeypatch,
+                                                                    uninterrupted, how):
+    with monkeypatch.context() as patched:
+        _kill_at_save(patched, 2, before=False)
+        with pytest.raises(_Killed):
+            fit(MODEL, ZARA1, FAULT_RUN, tmp_path)
+    _damage(tmp_path / "checkpoints" / "2", how)
+    with pytest.warns(UserWarning, match="using the checkpoint of epoch 1; skipped epoch 2: its "
+                                         "files do not match the checksum"):
+        fit(MODEL, ZARA1, FAULT_RUN, tmp_path)
+    _assert_like_uninterrupted(tmp_path, uninterrupted)
+
+
+def test_no_usable_checkpoint_or_another_configuration_is_a_clear_refusal(tmp_path,
+                                                                          monkeypatch):
+    with monkeypatch.context() as patched:
+        _kill_at_save(patched, 2, before=False)
+        with pytest.raises(_Killed):
+            fit(MODEL, ZARA1, FAULT_RUN, tmp_path)
+    (tmp_path / "config.json").unlink()
+    other = dataclasses.replace(FAULT_RUN, learning_rate=2e-3)
+    with pytest.raises(RunError, match="holds checkpoints of a run with a different configuration"):
+        fit(MODEL, ZARA1, other, tmp_path)
+    for epoch in (1, 2):
+        _damage(tmp_path / "checkpoints" / str(epoch), "flip")
+    with pytest.raises(RunError, match=r"no usable checkpoint in .*: epoch 2: its files do not "
+                                       r"match .*; epoch 1: its files do not match"):
+        fit(MODEL, ZARA1, FAULT_RUN, tmp_path)

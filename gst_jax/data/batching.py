@@ -38,12 +38,13 @@ class PackedStep(NamedTuple):
 
 
 def bucket_size(num_pedestrians: int, buckets: Sequence[int] = BUCKETS) -> int:
-    """The smallest bucket holding `num_pedestrians`."""
+    """The smallest bucket holding `num_pedestrians`; beyond the largest, the buckets go on
+    in steps of its last gap (one more compiled program per size met)."""
     for size in buckets:
         if num_pedestrians <= size:
             return size
-    raise DataError(f"a window with {num_pedestrians} pedestrians exceeds the largest bucket "
-                    f"({buckets[-1]}); pass larger buckets")
+    gap = buckets[-1] - buckets[-2]
+    return buckets[-1] + -(-(num_pedestrians - buckets[-1]) // gap) * gap
 
 
 def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int | None = None,
@@ -120,19 +121,30 @@ def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
             yield pad_windows([window_set[i] for i in chosen], size, batch_size, chosen)
 
 
-def make_batch(observed_xy: np.ndarray, *, pad_to_bucket: bool = True) -> SceneBatch:
+# Positions are float32 inside the model: up to 10 km from the origin they keep millimetres.
+LARGEST_COORDINATE = 1e4
+
+
+def make_batch(observed_xy: np.ndarray, *, obs_len: int = 8,
+               pad_to_bucket: bool = True) -> SceneBatch:
     """A prediction batch from observations (B, T_obs, N, 2), NaN where nobody was detected.
 
-    This is the robot's use: feed the last T_obs tracked positions of everyone in view. With
-    `pad_to_bucket` the pedestrian axis is padded (with undetected slots) to the next bucket
-    size, so a planner whose crowd changes size reuses a few compiled programs; pedestrian k
-    keeps slot k.
+    This is the robot's use: feed the last T_obs = `obs_len` tracked positions (0.4 s apart,
+    metres in a local frame) of everyone in view. With `pad_to_bucket` the pedestrian axis is
+    padded (with undetected slots) to the next bucket size, so a planner whose crowd changes
+    size reuses a few compiled programs; pedestrian k keeps slot k.
     """
     xy = np.asarray(observed_xy, dtype=np.float64)
     if xy.ndim != 4 or xy.shape[-1] != 2:
         raise ValueError(f"observed_xy must have shape (B, T_obs, N, 2), got {xy.shape}")
     if 0 in xy.shape:
         raise ValueError(f"observed_xy has an empty axis: shape {xy.shape}")
+    if xy.shape[1] != obs_len:
+        raise ValueError(f"observed_xy has {xy.shape[1]} steps; the model observes the last "
+                         f"obs_len = {obs_len} (0.4 s apart): pass observed_xy[:, -{obs_len}:]")
+    if np.nanmax(np.abs(xy), initial=0.0) > LARGEST_COORDINATE:
+        raise ValueError(f"observed_xy has coordinates beyond {LARGEST_COORDINATE:.0e} m, where "
+                         "float32 loses millimetres: subtract a local origin first")
     missing = np.isnan(xy)
     half = missing[..., 0] != missing[..., 1]
     if half.any():

@@ -46,13 +46,16 @@ def load_split(config: DataConfig, split: str) -> WindowSet:
     _check(config, split)
     data_dir = Path(config.data_dir) if config.data_dir else default_data_dir()
     name = f"{config.scene}/{config.protocol}/{split}"
+    per_file: list[tuple[Path, list[Window]]] = []
     if config.protocol == "loo":
-        files = _loo_files(data_dir, config.scene, split)
-        return WindowSet(tuple(w for f in files for w in _all_windows(f, config.seq_len)), name)
-    windows: list[Window] = []
-    for path in scene_files(data_dir, config.scene):
-        windows += _temporal_split(_cut(path, config.seq_len), config, split)
-    return WindowSet(tuple(windows), name)
+        for path in _loo_files(data_dir, config.scene, split):
+            per_file.append((path, kept(_cut(path, config.seq_len, config.drop_off_grid))))
+    else:
+        for path in scene_files(data_dir, config.scene):
+            windows = _cut(path, config.seq_len, config.drop_off_grid)
+            per_file.append((path, _temporal_split(windows, config, split)))
+    return WindowSet(tuple(w for _, windows in per_file for w in windows), name,
+                     tuple((str(path), len(windows)) for path, windows in per_file))
 
 
 def _check(config: DataConfig, split: str) -> None:
@@ -72,12 +75,8 @@ def _check(config: DataConfig, split: str) -> None:
 
 
 @functools.lru_cache(maxsize=64)
-def _cut(path: Path, seq_len: int) -> tuple[Window | None, ...]:
-    return tuple(cut_windows(read_tracks(path), seq_len))
-
-
-def _all_windows(path: Path, seq_len: int) -> list[Window]:
-    return kept(_cut(path, seq_len))
+def _cut(path: Path, seq_len: int, drop_off_grid: bool) -> tuple[Window | None, ...]:
+    return tuple(cut_windows(read_tracks(path, drop_off_grid=drop_off_grid), seq_len))
 
 
 def _temporal_split(windows: tuple[Window | None, ...], config: DataConfig,

@@ -9,10 +9,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from functools import reduce
+import warnings
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
+
+# Frame and pedestrian ids are parsed as floats: beyond 2^53 they are no longer exact.
+LARGEST_ID = 2 ** 53
 
 
 class DataError(ValueError):
@@ -28,7 +32,9 @@ class Tracks:
       frames: (R,) int64 frame ids.
       pedestrians: (R,) int64 pedestrian ids.
       xy: (R, 2) float64 positions in metres.
-      frame_step: frame-id difference between consecutive annotation steps (0.4 s).
+      frame_step: frame-id difference between consecutive annotation steps (0.4 s): the
+        most common difference between a pedestrian's consecutive frames. Every row lies on
+        the file's grid of that step (rows off it are an error, or dropped on request).
     """
 
     path: str
@@ -38,38 +44,50 @@ class Tracks:
     frame_step: int
 
 
-def read_tracks(path: str | Path) -> Tracks:
-    """Read a raw ETH/UCY text file (`.txt`) or a TrajNet++ file (`.ndjson`)."""
+def read_tracks(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
+    """Read a raw ETH/UCY text file (`.txt`) or a TrajNet++ file (`.ndjson`).
+
+    drop_off_grid: drop rows whose frame is off the file's grid (with a warning that counts
+    them) instead of refusing the file.
+    """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such file")
     if path.suffix == ".ndjson":
-        return read_trajnet_ndjson(path)
-    return read_text_tracks(path)
+        return read_trajnet_ndjson(path, drop_off_grid=drop_off_grid)
+    return read_text_tracks(path, drop_off_grid=drop_off_grid)
 
 
-def read_text_tracks(path: str | Path) -> Tracks:
+def _lines(path: Path) -> Iterator[tuple[int, str]]:
+    """(line number, text) of the non-blank lines; bytes that are not UTF-8 are an error."""
+    for line_number, raw in enumerate(path.read_bytes().splitlines(), start=1):
+        try:
+            line = raw.decode("utf-8")
+        except UnicodeDecodeError as error:
+            raise DataError(f"{path}:{line_number}: not UTF-8 text (byte "
+                            f"0x{raw[error.start]:02x} at column {error.start + 1})") from None
+        if line.strip():
+            yield line_number, line
+
+
+def read_text_tracks(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
     """`frame ped x y` rows, tab- or space-separated, as in the ETH/UCY raw files."""
     path = Path(path)
     rows = []
-    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
+    for line_number, line in _lines(path):
         fields = line.split()
         if len(fields) != 4:
             raise DataError(f"{path}:{line_number}: expected 4 columns (frame ped x y), "
                             f"found {len(fields)}: {line.strip()!r}")
         rows.append(_parse_row(path, line_number, fields))
-    return _build_tracks(path, rows)
+    return _build_tracks(path, rows, drop_off_grid)
 
 
-def read_trajnet_ndjson(path: str | Path) -> Tracks:
+def read_trajnet_ndjson(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
     """TrajNet++ ndjson: `{"track": {"f", "p", "x", "y"}}` rows; `{"scene": ...}` rows skipped."""
     path = Path(path)
     rows = []
-    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
+    for line_number, line in _lines(path):
         try:
             record = json.loads(line)
         except json.JSONDecodeError as error:
@@ -79,11 +97,17 @@ def read_trajnet_ndjson(path: str | Path) -> Tracks:
         if "scene" in record:
             continue
         track = record["track"]
+        if not isinstance(track, dict):
+            raise DataError(f"{path}:{line_number}: 'track' is not an object: {track!r}")
         missing = [k for k in ("f", "p", "x", "y") if k not in track]
         if missing:
             raise DataError(f"{path}:{line_number}: track record lacks {', '.join(missing)}")
+        for key, name in zip("fpxy", ("frame", "pedestrian id", "x", "y")):
+            value = track[key]     # JSON numbers only: not true/false, not "1.5"
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise DataError(f"{path}:{line_number}: {name} is not a number: {value!r}")
         rows.append(_parse_row(path, line_number, [track[k] for k in ("f", "p", "x", "y")]))
-    return _build_tracks(path, rows)
+    return _build_tracks(path, rows, drop_off_grid)
 
 
 def _parse_row(path: Path, line_number: int, fields: list) -> tuple[int, int, float, float, int]:
@@ -99,12 +123,15 @@ def _parse_row(path: Path, line_number: int, fields: list) -> tuple[int, int, fl
         values.append(value)
     frame, pedestrian, x, y = values
     for name, value in (("frame", frame), ("pedestrian id", pedestrian)):
+        if abs(value) >= LARGEST_ID:
+            raise DataError(f"{path}:{line_number}: {name} {value:.6g} is too large to be an "
+                            f"exact integer (the largest is 2^53)")
         if value != int(value):
             raise DataError(f"{path}:{line_number}: {name} is not an integer: {value!r}")
     return int(frame), int(pedestrian), x, y, line_number
 
 
-def _build_tracks(path: Path, rows: list) -> Tracks:
+def _build_tracks(path: Path, rows: list, drop_off_grid: bool = False) -> Tracks:
     if not rows:
         raise DataError(f"{path}: empty file (no trajectory rows)")
     seen: dict[tuple[int, int], int] = {}
@@ -113,13 +140,41 @@ def _build_tracks(path: Path, rows: list) -> Tracks:
         if first != line_number:
             raise DataError(f"{path}:{line_number}: duplicate row for frame {frame}, pedestrian "
                             f"{pedestrian} (first at line {first})")
-    table = np.array([row[:4] for row in rows], dtype=np.float64)
-    order = np.lexsort((table[:, 1], table[:, 0]))
-    table = table[order]
-    frames = table[:, 0].astype(np.int64)
-    unique_frames = np.unique(frames)
-    # The annotation step is read from the data (ETH/UCY 10, LCAS 1, WILDTRACK 5).
-    steps = np.diff(unique_frames)
-    frame_step = int(reduce(math.gcd, steps.tolist(), 0)) if len(steps) else 1
-    return Tracks(path=str(path), frames=frames, pedestrians=table[:, 1].astype(np.int64),
-                  xy=table[:, 2:4].copy(), frame_step=max(frame_step, 1))
+    frames = np.array([row[0] for row in rows], dtype=np.int64)
+    pedestrians = np.array([row[1] for row in rows], dtype=np.int64)
+    xy = np.array([row[2:4] for row in rows], dtype=np.float64)
+    lines = np.array([row[4] for row in rows])
+    frame_step, phase = _frame_grid(frames, pedestrians)
+    off_grid = (frames - phase) % frame_step != 0
+    if off_grid.any():
+        first = int(np.argmax(off_grid))
+        count = int(off_grid.sum())
+        if not drop_off_grid:
+            raise DataError(
+                f"{path}:{lines[first]}: frame {frames[first]} is off the file's grid (every "
+                f"{frame_step} frames from {phase}); {count} row(s) are off it (drop them with "
+                "--drop-off-grid)")
+        warnings.warn(f"{path}: dropped {count} row(s) off the grid of every {frame_step} "
+                      f"frames from {phase} (first at line {lines[first]})", stacklevel=2)
+        frames, pedestrians, xy = frames[~off_grid], pedestrians[~off_grid], xy[~off_grid]
+    order = np.lexsort((pedestrians, frames))
+    return Tracks(path=str(path), frames=frames[order], pedestrians=pedestrians[order],
+                  xy=xy[order], frame_step=frame_step)
+
+
+def _frame_grid(frames: np.ndarray, pedestrians: np.ndarray) -> tuple[int, int]:
+    """(step, phase) of a file's frame grid: the most common difference between a
+    pedestrian's consecutive frames (ETH/UCY 10, LCAS 1, WILDTRACK 5), and the most common
+    frame id modulo it. A few rows off that grid do not change it, as a gcd would."""
+    order = np.lexsort((frames, pedestrians))
+    same = pedestrians[order][1:] == pedestrians[order][:-1]
+    steps = np.diff(frames[order])[same]
+    steps = steps[steps > 0]
+    if not len(steps):                     # nobody seen twice: the gaps between frames
+        steps = np.diff(np.unique(frames))
+    if not len(steps):
+        return 1, 0
+    values, counts = np.unique(steps, return_counts=True)
+    step = int(values[np.argmax(counts)])
+    residues, counts = np.unique(frames % step, return_counts=True)
+    return step, int(residues[np.argmax(counts)])

@@ -10,14 +10,19 @@ from gst_jax.data.protocols import has_validation, load_split
 
 def split_stats(config: DataConfig, scenes: list[str]) -> dict:
     """`{"protocol": ..., "scenes": {scene: {split: {windows, pedestrian_slots,
-    max_pedestrians, fully_detected}}}}` for the given scenes."""
+    max_pedestrians, fully_detected}}}, "files_without_windows": {"scene/split": [file]}}`
+    for the given scenes; the last lists the files that gave a split no window."""
     splits = ("train", "val", "test") if has_validation(config) else ("train", "test")
     result = {"protocol": f"{config.protocol}, obs {config.obs_len}, pred {config.pred_len}",
-              "scenes": {}}
+              "scenes": {}, "files_without_windows": {}}
     for scene in scenes:
         scene_config = dataclasses.replace(config, scene=scene)
-        result["scenes"][scene] = {split: load_split(scene_config, split).stats()
-                                   for split in splits}
+        result["scenes"][scene] = {}
+        for split in splits:
+            window_set = load_split(scene_config, split)
+            result["scenes"][scene][split] = window_set.stats()
+            if empty := window_set.files_without_windows():
+                result["files_without_windows"][f"{scene}/{split}"] = empty
     return result
 
 
@@ -36,4 +41,7 @@ def format_stats(stats: dict) -> str:
     for row in (header, *rows):
         lines.append("  ".join(str(c).rjust(w) if i >= 2 else str(c).ljust(w)
                                for i, (c, w) in enumerate(zip(row, widths))))
+    for name, files in stats.get("files_without_windows", {}).items():
+        lines += [f"note: {path} gives {name} no window (shorter than a window, or nobody "
+                  "fully detected in any)" for path in files]
     return "\n".join(lines)

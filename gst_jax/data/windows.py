@@ -15,12 +15,16 @@ class Window:
     """One scene window: T steps of the N_w pedestrians seen in it.
 
     Attributes:
-      positions: (T, N_w, 2) float32 metres, zero where the pedestrian was not detected.
+      positions: (T, N_w, 2) float32 metres relative to `origin`, zero where the pedestrian
+        was not detected.
       position_mask: (T, N_w) float32, 1 where the position exists.
       pedestrian_ids: (N_w,) int64, sorted.
       source: the file the window was cut from.
       start_frame: frame id of step 0; step t is frame start_frame + t * frame_step.
       frame_step: frame-id difference of one step.
+      origin: (2,) float64 metres subtracted from the file's coordinates before the float32
+        cast: the nearest whole kilometre of the window's mean position, so that positions
+        of UTM-like data (near 1e6-1e9 m) keep their millimetres; 0 for local coordinates.
     """
 
     positions: np.ndarray
@@ -29,6 +33,7 @@ class Window:
     source: str
     start_frame: int
     frame_step: int
+    origin: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(2))
 
     @property
     def num_pedestrians(self) -> int:
@@ -46,10 +51,15 @@ class Window:
 
 @dataclasses.dataclass(frozen=True)
 class WindowSet:
-    """The windows of one split of one dataset, in a fixed order."""
+    """The windows of one split of one dataset, in a fixed order.
+
+    files: (file, windows it gave this split) for every file read, also those that gave none
+    (shorter than a window, or without a fully detected pedestrian in any).
+    """
 
     windows: tuple[Window, ...]
     name: str = ""
+    files: tuple[tuple[str, int], ...] = ()
 
     def __len__(self) -> int:
         return len(self.windows)
@@ -58,7 +68,10 @@ class WindowSet:
         return self.windows[index]
 
     def subset(self, indices: Iterable[int]) -> "WindowSet":
-        return WindowSet(tuple(self.windows[i] for i in indices), self.name)
+        return WindowSet(tuple(self.windows[i] for i in indices), self.name, self.files)
+
+    def files_without_windows(self) -> list[str]:
+        return [path for path, count in self.files if count == 0]
 
     def stats(self) -> dict[str, int]:
         """Counts in the schema of tests/fixtures/reference_windows.json."""
@@ -94,14 +107,16 @@ def _window_from_rows(tracks: Tracks, rows: np.ndarray, start_frame: int,
     offset = tracks.frames[rows] - start_frame
     step = offset // tracks.frame_step
     on_grid = (offset % tracks.frame_step == 0) & (step < seq_len)
+    xy = tracks.xy[rows][on_grid]
+    origin = np.round(xy.mean(axis=0), -3) if len(xy) else np.zeros(2)
     positions = np.zeros((seq_len, len(pedestrian_ids), 2), np.float32)
     position_mask = np.zeros((seq_len, len(pedestrian_ids)), np.float32)
-    positions[step[on_grid], slot[on_grid]] = tracks.xy[rows][on_grid]
+    positions[step[on_grid], slot[on_grid]] = xy - origin
     position_mask[step[on_grid], slot[on_grid]] = 1.0
     if not (position_mask.min(axis=0) > 0).any():
         return None
     return Window(positions, position_mask, pedestrian_ids, tracks.path, start_frame,
-                  tracks.frame_step)
+                  tracks.frame_step, origin)
 
 
 def kept(windows: Sequence[Window | None]) -> list[Window]:

@@ -1,10 +1,12 @@
 """The epoch loop, written once for single runs and sweeps, and `fit`, which trains one run.
 
-The loop resumes from the latest checkpoint (dropping the metrics of epochs after it),
-saves a checkpoint every `checkpoint_every` epochs and at the end, writes one metrics.jsonl
-line per epoch, shows progress with an ETA, and applies the non-finite policy: a step whose
-loss or gradients are not finite keeps the state it had (`make_train_step` does that); a
-single run then stops with `NonFiniteError`, a sweep counts it per member and goes on.
+The loop resumes from the newest intact checkpoint (of the same configuration), saves a
+checkpoint every `checkpoint_every` epochs and at the end, each with the metrics records of
+every epoch so far, writes one metrics.jsonl line per epoch (rewritten from the checkpoint on
+resume, so a kill at any moment leaves one line per completed epoch), shows progress with an
+ETA, and applies the non-finite policy: a step whose loss, gradients or new state are not
+finite keeps the state it had (`make_train_step` does that); a single run then stops with
+`NonFiniteError`, a sweep counts it per member and goes on.
 
 `python -m gst_jax.train` with no arguments trains the paper's configuration (GST (D), n = 1,
 ghost, seed 1000, 200 epochs, 16 scenes per step, Adam 1e-3 x 0.3 every 50 epochs, tau
@@ -28,7 +30,7 @@ from gst_jax.compiles import count_compiles
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import evaluate_params
 from gst_jax.predict import make_predict
-from gst_jax.runs import WorkDir, run_config
+from gst_jax.runs import RunError, WorkDir, run_config
 from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
                                     parameter_key, step_key, validation_key)
 from gst_jax.training.step import make_train_step
@@ -102,14 +104,19 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     """
     progress = progress or Progress()
     checkpointer = workdir.checkpointer()
-    last_epoch = checkpointer.latest_epoch or 0
-    if last_epoch:
-        state, _, _ = checkpointer.restore(jax.eval_shape(training.init_state), last_epoch)
-        progress.line(f"resuming {workdir.path} after epoch {last_epoch}")
+    if checkpointer.latest_epoch is None:
+        state, records, last_epoch = training.init_state(), [], 0
     else:
-        state = training.init_state()
-    # Records of epochs after the checkpoint (a crashed run's tail) are written again.
-    workdir.truncate_metrics(last_epoch)
+        state, stored_config, records, last_epoch = checkpointer.restore(
+            jax.eval_shape(training.init_state), fall_back=True)
+        if stored_config != config:
+            raise RunError(f"the checkpoints in {workdir.path} belong to a run with a different "
+                           "configuration; choose another --workdir or delete it")
+        checkpointer.discard_after(last_epoch)          # damaged ones that were skipped
+        progress.line(f"resuming {workdir.path} after epoch {last_epoch}")
+    # One line per epoch up to the checkpoint, each saved with it: what a killed run wrote
+    # after the checkpoint goes, what it did not get to write comes back.
+    workdir.write_metrics(records)
     start_epoch = last_epoch + 1
 
     steps_per_epoch = math.ceil(len(train_set) / train_config.batch_size)
@@ -158,11 +165,10 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                                               if v}
             if after_epoch is not None:
                 record.update(after_epoch(epoch, state))
-            # The record first: a crash before the checkpoint leaves a line that a resume
-            # from the previous checkpoint drops, never a checkpoint without its line.
-            workdir.append_metrics(record)
+            records.append(record)
             if epoch % train_config.checkpoint_every == 0 or epoch == train_config.epochs:
-                checkpointer.save(epoch, state, config)
+                checkpointer.save(epoch, state, config, records)
+            workdir.append_metrics(record)
             progress.line(_format_record(record))
     finally:
         checkpointer.close()
@@ -183,6 +189,10 @@ def load_train_set(data_config: DataConfig, train_config: TrainConfig) -> data.W
     train_set = data.load_split(data_config, "train")
     if train_config.max_train_windows:
         train_set = train_set.subset(range(min(train_config.max_train_windows, len(train_set))))
+    if not len(train_set):
+        files = ", ".join(path for path, _ in train_set.files) or "no files"
+        raise data.DataError(f"no training windows in {data_config.scene} ({data_config.protocol} "
+                             f"protocol): none of {files} gives one")
     return train_set
 
 

@@ -60,13 +60,14 @@ class TrainStep:
             return loss_sum + loss, jax.tree.map(jnp.add, grad_sum, grads)
 
         def update(state: TrainState, loss, grads, hparams: HParams):
-            finite = jnp.isfinite(loss) & jnp.all(jnp.array(
-                [jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads)]))
             opt_state = state.opt_state._replace(hyperparams={
                 **state.opt_state.hyperparams, "learning_rate": hparams.learning_rate})
             updates, new_opt_state = optimizer.update(grads, opt_state, state.params)
             new_state = TrainState(params=optax.apply_updates(state.params, updates),
                                    opt_state=new_opt_state, step=state.step + 1)
+            # The loss, the gradients and the new state must all be finite (a NaN learning
+            # rate has finite gradients and NaN parameters).
+            finite = jnp.isfinite(loss) & all_finite(grads) & all_finite(new_state)
             state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), new_state, state)
             return state, {"loss": loss, "finite": finite, "grad_norm": optax.tree.norm(grads)}
 
@@ -94,6 +95,12 @@ class TrainStep:
                  ) -> tuple[TrainState, dict]:
         loss, grads = self.loss_and_grads(state.params, key, step, hparams)
         return self._update(state, loss, grads, hparams)
+
+
+def all_finite(tree: Any) -> jax.Array:
+    """() bool: every floating-point entry of the pytree is finite."""
+    return jnp.all(jnp.array([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)
+                              if jnp.issubdtype(leaf.dtype, jnp.floating)]))
 
 
 def make_train_step(config: ModelConfig, *, rotate: bool = True,
