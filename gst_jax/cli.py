@@ -17,12 +17,13 @@ import jax
 
 from gst_jax.config import (EDGE_HEAD_CHOICES, OUTPUTS, PROTOCOLS, SCENES, TEMPORAL_MODELS,
                             DataConfig, ModelConfig, TrainConfig)
-from gst_jax.data import DataError
+from gst_jax.data import DataError, data_name
 from gst_jax.runs import RunError
 from gst_jax.training.loop import NonFiniteError
 from gst_jax.training.members import DETECTION
 
 _TRAIN_DEFAULTS = TrainConfig()
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048}
 # Errors whose message is the whole story: a command prints it on one line and exits 1.
 USER_ERRORS = (DataError, RunError, NonFiniteError)
 
@@ -92,9 +93,25 @@ def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False) -> 
     group.add_argument("--data-dir", default=None,
                        help="folder holding eth_ucy/ and trajnetpp/ (default: "
                             f"{default or 'the bundled data/'})")
+    add_own_data_flags(group)
+
+
+def add_own_data_flags(group) -> None:
+    """--drop-off-grid, --data, --fps, --units: reading files, and your own files."""
     group.add_argument("--drop-off-grid", action="store_true",
                        help="drop rows whose frame is off their file's frame grid (a warning "
                             "counts them) instead of refusing the file")
+    group.add_argument("--data", default=None, metavar="PATH",
+                       help="your own data instead of a bundled scene: a file, a folder or a "
+                            "glob of 'frame ped x y' text files or TrajNet++ ndjson (runs and "
+                            "labels take its name)")
+    group.add_argument("--fps", type=positive_float, default=None,
+                       help="frame ids per second of --data (e.g. 10 for a 10 Hz tracker "
+                            "numbering samples 0, 1, 2...); rates that are a multiple of the "
+                            "model's 2.5 Hz are resampled, others refused (default: an ndjson "
+                            "file's own rate, else rows 0.4 s apart)")
+    group.add_argument("--units", default="m", choices=tuple(UNITS),
+                       help="unit of --data's coordinates (default: m)")
 
 
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
@@ -143,6 +160,9 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
                            help=f"random seed (default: {d.seed})")
         group.add_argument("--fully-detected-only", action="store_true",
                            help="drop partially detected pedestrians (the paper's 'F' baseline)")
+        group.add_argument("--init", default=None, metavar="MODEL",
+                           help="fine-tune: start from this model's parameters (a work "
+                                "directory, SWEEP_DIR:MEMBER or pretrained:NAME)")
         group.add_argument("--eval-every", type=count, default=d.eval_every,
                            help="epochs between validation AOE/FOE, with a protocol that has a "
                                 f"validation split (default: {d.eval_every}; 0 = never)")
@@ -159,6 +179,14 @@ def add_output_flags(parser: argparse.ArgumentParser, *, workdir_help: str,
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
 
 
+def model_spec(spec: str | None) -> str | None:
+    """A model name that means the same from any working directory (absolute paths)."""
+    if spec is None or spec.startswith("pretrained:"):
+        return spec
+    where, colon, member = spec.partition(":")
+    return str(Path(where).absolute()) + colon + member
+
+
 def parse_edge_heads(text: str) -> list[int]:
     """'0,1,4' -> [0, 1, 4], each among EDGE_HEAD_CHOICES (an argparse type)."""
     try:
@@ -172,12 +200,20 @@ def parse_edge_heads(text: str) -> list[int]:
 
 
 def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> DataConfig:
-    """The flags' data config; flags left at None keep `base`'s values (a run's own)."""
+    """The flags' data config; flags left at None keep `base`'s values (a run's own). Paths
+    are stored absolute, so a run reads the same files from any working directory."""
     base = base or DataConfig()
-    return dataclasses.replace(base, scene=args.scene or base.scene,
-                               protocol=args.protocol or base.protocol,
-                               data_dir=args.data_dir or base.data_dir,
-                               drop_off_grid=args.drop_off_grid or base.drop_off_grid)
+    config = dataclasses.replace(
+        base, scene=args.scene or base.scene, protocol=args.protocol or base.protocol,
+        data_dir=str(Path(args.data_dir).absolute()) if args.data_dir else base.data_dir,
+        drop_off_grid=args.drop_off_grid or base.drop_off_grid)
+    if args.data:
+        pattern = str(Path(args.data).absolute())
+        config = dataclasses.replace(config, scene=data_name(pattern), data=pattern,
+                                     fps=args.fps, scale=UNITS[args.units])
+    elif args.fps or args.units != "m":
+        raise DataError("--fps and --units describe your own files: give them with --data")
+    return config
 
 
 def model_config(args: argparse.Namespace) -> ModelConfig:
@@ -192,7 +228,8 @@ def train_config(args: argparse.Namespace) -> TrainConfig:
                   checkpoint_every=args.checkpoint_every,
                   max_train_windows=args.max_train_windows)
     if isinstance(args.fully_detected_only, bool):        # a single run, not a sweep
-        fields.update(fully_detected_only=args.fully_detected_only, eval_every=args.eval_every)
+        fields.update(fully_detected_only=args.fully_detected_only, eval_every=args.eval_every,
+                      init=model_spec(args.init))
     return dataclasses.replace(_TRAIN_DEFAULTS, **fields)
 
 

@@ -20,6 +20,8 @@ TEMPORAL_MODELS = ("lstm", "tcn")
 EDGE_HEAD_CHOICES = (0, 1, 2, 4, 8, 16)
 # Gumbel-softmax temperature of every evaluation and prediction (hard samples; docs/MODEL.md 4).
 EVAL_TAU = 0.03
+# The model's time step: 2.5 Hz, 8 observed steps (3.2 s), 12 predicted (4.8 s).
+MODEL_HZ = 2.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,7 +29,7 @@ class DataConfig:
     """How scene windows are cut from raw tracks and grouped into batches.
 
     Attributes:
-      scene: one of SCENES.
+      scene: one of SCENES, or the name of your own `data`.
       protocol: 'paper' (the release's per-file temporal 80/20 split), 'paper-val' (the same,
         with a validation set carved from the end of each file's train windows and the train
         windows overlapping it in time removed) or 'loo' (leave-one-scene-out; ETH/UCY only).
@@ -38,6 +40,13 @@ class DataConfig:
       data_dir: folder holding `eth_ucy/` and `trajnetpp/`; None = the bundled `data/`.
       drop_off_grid: drop rows whose frame is off a file's grid (counted in a warning)
         instead of refusing the file.
+      data: your own files instead of a bundled scene: an absolute path to a file, a folder
+        or a glob of `frame ped x y` text files or TrajNet++ ndjson.
+      fps: frame ids per second of `data` (25 for ETH/UCY's video frames, 10 for a 10 Hz
+        tracker numbering its samples 0, 1, 2, ...); annotations at a multiple of the model's
+        2.5 Hz are resampled to it, others refused. None: a TrajNet++ file's own rate, else
+        annotations taken to be 0.4 s apart.
+      scale: metres per unit of `data`'s coordinates.
     """
 
     scene: str = "eth"
@@ -48,6 +57,9 @@ class DataConfig:
     val_fraction: float = 0.1
     data_dir: str | None = None
     drop_off_grid: bool = False
+    data: str | None = None
+    fps: float | None = None
+    scale: float = 1.0
 
     @property
     def seq_len(self) -> int:
@@ -131,6 +143,8 @@ class TrainConfig:
       checkpoint_every: epochs between checkpoints (the last epoch is always saved).
       eval_every: epochs between validation AOE/FOE (0 = never; needs a validation split).
       max_train_windows: use only the first k training windows (smoke tests; 0 = all).
+      init: fine-tune: start from this model's parameters (a work directory, DIR:MEMBER or
+        pretrained:NAME) instead of a fresh initialisation.
     """
 
     epochs: int = 200
@@ -146,6 +160,7 @@ class TrainConfig:
     checkpoint_every: int = 5
     eval_every: int = 10
     max_train_windows: int = 0
+    init: str | None = None
 
     def __post_init__(self):
         for name in ("epochs", "batch_size", "checkpoint_every", "lr_decay_every"):

@@ -9,7 +9,7 @@ of the ground truth, and a constant-velocity baseline on exactly the same pedest
 
 from __future__ import annotations
 
-import dataclasses
+import time
 from typing import Any
 
 import jax
@@ -19,6 +19,7 @@ from gst_jax import data, graph, metrics
 from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig
 from gst_jax.model import Controls
 from gst_jax.predict import make_predict
+from gst_jax.progress import Progress
 
 # Scenes whose batches of (padded) pedestrians fit this many padded edges share one program.
 DEFAULT_EDGE_BUDGET = 16 * 32 * 32
@@ -28,13 +29,14 @@ def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: 
                     num_samples: int = 20, edge_budget: int = DEFAULT_EDGE_BUDGET,
                     with_kde: bool = True, with_baseline: bool = True,
                     fully_detected_only: bool = False, controls: Controls | None = None,
-                    predict=None) -> dict[str, Any]:
+                    predict=None, progress: Progress | None = None) -> dict[str, Any]:
     """Evaluate `params` on every window of `window_set`; returns a flat dict of metrics.
 
     fully_detected_only: the model observes fully detected pedestrians only (a run trained
     with the "F" baseline is tested the same way). controls: traced n / ghost overriding the
     config's (sweeps), at tau = EVAL_TAU. predict: a `make_predict(config, num_samples,
     with_graph=False)` to reuse across calls (one compile per bucket for many members).
+    progress: reports the windows evaluated, with an ETA.
     """
     predict = predict or make_predict(config, num_samples=num_samples, with_graph=False)
     # scipy's 2-D KDE needs more samples than dimensions; with K <= 2 there is no KDE NLL.
@@ -45,7 +47,8 @@ def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: 
     def add(name, value):
         totals[name] = totals.get(name, 0.0) + np.asarray(value, dtype=np.float64)
 
-    batches = data.evaluation_batches(window_set, edge_budget=edge_budget)
+    batches = list(data.evaluation_batches(window_set, edge_budget=edge_budget))
+    started, done = time.perf_counter(), 0
     for batch_index, batch in enumerate(batches):
         if fully_detected_only:
             batch = jax.tree.map(np.asarray, graph.drop_partially_detected(batch, True))
@@ -71,6 +74,9 @@ def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: 
         if with_baseline:
             for name, value in _constant_velocity_sums(batch, obs_len, eval_mask).items():
                 add("cv_" + name, value)
+        done += int(batch.scene_mask.sum())
+        if progress is not None:
+            progress.count("windows evaluated", done, len(window_set), started)
     return _summarize(totals, num_samples, with_kde, with_baseline)
 
 
@@ -160,14 +166,19 @@ def format_markdown(result: dict) -> str:
 
 
 def evaluate_run(run, data_config: DataConfig, split: str, *, num_samples: int = 20,
-                 seed: int = 0, with_kde: bool = True) -> dict[str, Any]:
-    """Evaluate a loaded run (`gst_jax.runs.Run`) on one split: the metrics of
+                 seed: int = 0, with_kde: bool = True,
+                 progress: Progress | None = None) -> dict[str, Any]:
+    """Evaluate a loaded model (`gst_jax.runs.Run`) on one split: the metrics of
     `evaluate_params` plus what was evaluated (scene, split, windows, epoch, protocol line)."""
     window_set = data.load_split(data_config, split)
+    if not len(window_set):
+        raise data.DataError(f"{data_config.scene}: the {split} split has no window")
     result = evaluate_params(run.params, jax.random.key(seed), window_set, run.model_config,
                              num_samples=num_samples, with_kde=with_kde,
-                             fully_detected_only=run.train_config.fully_detected_only)
-    result.update(scene=data_config.scene, protocol_name=data_config.protocol, split=split,
+                             fully_detected_only=run.train_config.fully_detected_only,
+                             progress=progress)
+    result.update(model=run.name, scene=data_config.scene, protocol_name=data_config.protocol,
+                  split=split,
                   windows=len(window_set), epoch=run.epoch, output=run.model_config.output,
                   num_edge_heads=run.model_config.num_edge_heads,
                   protocol=protocol_line(data_config, split, num_samples, run.epoch))

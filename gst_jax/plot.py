@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from gst_jax import cli, run_figures
-from gst_jax.runs import WorkDir, load_run
+from gst_jax.runs import WorkDir, load_model
 
 COMMANDS = {
     "scene": "observed, true and K predicted paths, sampled graphs and adjacency matrices of "
@@ -24,7 +24,8 @@ def main(argv: list[str] | None = None) -> None:
     commands = parser.add_subparsers(dest="command", required=True)
     for name, help_text in COMMANDS.items():
         sub = commands.add_parser(name, help=help_text, description=help_text)
-        sub.add_argument("run", help="work directory of `python -m gst_jax.train`")
+        sub.add_argument("run", help="a work directory of `python -m gst_jax.train`" + (
+            "" if name == "training" else ", SWEEP_DIR:MEMBER or pretrained:NAME"))
         sub.add_argument("--out", default=None, help="PNG path (default: <run>/figures/...)")
         if name == "training":
             continue
@@ -46,15 +47,15 @@ def plot(args) -> None:
         path = run_figures.training_figure(workdir, Path(args.out or workdir.figures
                                                          / "training.png"))
     else:
-        run = load_run(args.run)
+        run = load_model(args.run)
         data_config = cli.data_config(args, base=run.data_config)
         stem = f"{args.command}-{data_config.scene}-{args.window}"
         if args.command == "scene":
-            out = Path(args.out or run.workdir.figures / f"{stem}.png")
+            out = Path(args.out or run.figures / f"{stem}.png")
             path = run_figures.scene_figure(run, data_config, args.window, out,
                                             samples=args.samples, seed=args.seed, pdf=args.pdf)
         else:
-            out = Path(args.out or run.workdir.figures / f"{stem}-agent{args.agent}.png")
+            out = Path(args.out or run.figures / f"{stem}-agent{args.agent}.png")
             path = run_figures.attention_figure(run, data_config, args.window, args.agent, out,
                                                 seed=args.seed)
     cli.say(f"written: {path}")

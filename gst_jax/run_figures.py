@@ -42,8 +42,11 @@ def scene_figure(run: Run, data_config: DataConfig, index: int, out: Path, *, sa
     predicted_paths = prediction.positions[:, 0]                           # (K, P, N, 2)
     predicted = prediction.predicted_mask[0] > 0
     middle = (run.model_config.pred_len - 1) // 2
+    # A velocity needs both of the last two observed positions (not a zero-filled one).
+    velocity = ((positions[obs_len - 1] - positions[obs_len - 2])
+                * (mask[obs_len - 1] * mask[obs_len - 2])[:, None])
     last_obs = (prediction.sampled_adjacency[0, 0, obs_len - 1], positions[obs_len - 1],
-                positions[obs_len - 1] - positions[obs_len - 2], mask[obs_len - 1] > 0)
+                velocity, mask[obs_len - 1] > 0)
     columns, labels = [last_obs], [f"t = {obs_len} (last observed)"]
     if prediction.sampled_adjacency.shape[2] > obs_len:                     # LSTM rollouts
         sample0 = predicted_paths[0]

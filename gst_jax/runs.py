@@ -185,6 +185,8 @@ def run_name(data_config: DataConfig, model_config: ModelConfig,
         parts.append(model_config.temporal)
     if train_config.fully_detected_only:
         parts.append("fd")
+    if train_config.init:
+        parts.append("from-" + Path(train_config.init.replace(":", "-")).name)
     parts += [f"e{train_config.epochs}", f"seed{train_config.seed}"]
     return "-".join(parts)
 
@@ -276,7 +278,9 @@ class WorkDir:
 
     def check_writable(self) -> None:
         """Refuse early where results could not be written (a read-only work directory)."""
-        folder = self.path / "eval" if (self.path / "eval").is_dir() else self.path
+        folder = self.path / "eval"
+        while not folder.exists() and folder != folder.parent:     # what would be created
+            folder = folder.parent
         if not os.access(folder, os.W_OK):
             raise RunError(f"cannot write in {folder}; evaluate a writable copy, or print the "
                            "result with --json")
@@ -310,6 +314,13 @@ class Run:
     params: Any
     epoch: int
     workdir: WorkDir | None
+
+    @property
+    def figures(self) -> Path:
+        """Where its figures go: its work directory's figures/, or runs/figures/<name>."""
+        if self.workdir is not None:
+            return self.workdir.figures
+        return RUNS / "figures" / self.name.replace(":", "-").replace("/", "-")
 
 
 def load_model(spec: str | Path, epoch: int | None = None) -> Run:

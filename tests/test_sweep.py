@@ -17,7 +17,7 @@ from gst_jax.model import Controls
 from gst_jax.rollout import rollout
 from gst_jax.runs import RunError, WorkDir, load_member
 from gst_jax.training import members as sweep_members, sweep
-from gst_jax.training.loop import Progress
+from gst_jax.progress import Progress
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
 

@@ -29,10 +29,10 @@ TINY_RUN = ["--scene", "zara1", "--epochs", "3", "--batch-size", "8", "--max-tra
 _KILLED_TRAIN = """
 import os, signal, sys
 from gst_jax import train
-from gst_jax.training import loop
+from gst_jax.progress import Progress
 
 steps = 0
-report_step = loop.Progress.step
+report_step = Progress.live          # the training loop reports every optimiser step
 
 def step_then_die(self, *args):
     global steps
@@ -41,7 +41,7 @@ def step_then_die(self, *args):
     if steps >= {kill_after}:
         os.kill(os.getpid(), signal.SIGKILL)
 
-loop.Progress.step = step_then_die
+Progress.live = step_then_die
 train.main(sys.argv[1:])
 """
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 from gst_jax import cli
@@ -21,17 +22,18 @@ def main(argv: list[str] | None = None) -> None:
     stats.add_argument("--pred-len", type=int, default=12, help="predicted steps (default: 12)")
     stats.add_argument("--data-dir", default=None,
                        help="folder holding eth_ucy/ and trajnetpp/ (default: bundled data/)")
-    stats.add_argument("--drop-off-grid", action="store_true",
-                       help="drop rows off their file's frame grid instead of refusing it")
+    cli.add_own_data_flags(stats)
     stats.add_argument("--json", action="store_true",
                        help="print JSON in the schema of reference_windows.json")
     cli.run(show_stats, parser, argv)
 
 
 def show_stats(args) -> None:
-    config = DataConfig(protocol=args.protocol, obs_len=args.obs_len, pred_len=args.pred_len,
-                        data_dir=args.data_dir, drop_off_grid=args.drop_off_grid)
-    result = split_stats(config, args.scene or list(ETH_UCY_SCENES))
+    args.scene, scenes = None, args.scene      # --scene is repeatable here: a list
+    config = dataclasses.replace(cli.data_config(args, DataConfig(protocol=args.protocol)),
+                                 obs_len=args.obs_len, pred_len=args.pred_len)
+    result = split_stats(config, [config.scene] if config.data else
+                         scenes or list(ETH_UCY_SCENES))
     print(json.dumps(result, indent=1) if args.json else format_stats(result))
 
 

@@ -5,20 +5,23 @@
 - `paper-val`: the same test split; the last `val_fraction` of each file's train windows
   become validation, and train windows that share any frame with them are dropped.
 - `loo`: leave-one-scene-out (Social-GAN split, `data/eth_ucy/loo/splits.json`).
-TrajNet++ crowds (`lcas`, `wildtrack`) follow `paper` / `paper-val` on their own file.
+TrajNet++ crowds (`lcas`, `wildtrack`) and your own files (`DataConfig.data`) follow
+`paper` / `paper-val` on each file; the split `all` is every window of every file.
 """
 
 from __future__ import annotations
 
 import functools
+import glob
 import json
 from pathlib import Path
 
-from gst_jax.config import DataConfig, ETH_UCY_SCENES, PROTOCOLS, SCENES
-from gst_jax.data.readers import DataError, read_tracks
+from gst_jax.config import MODEL_HZ, DataConfig, ETH_UCY_SCENES, PROTOCOLS, SCENES
+from gst_jax.data.readers import DataError, read_tracks, to_model_rate
 from gst_jax.data.windows import Window, WindowSet, cut_windows, kept
 
-SPLITS = ("train", "val", "test")
+SPLITS = ("train", "val", "test", "all")
+TRACK_SUFFIXES = (".txt", ".ndjson")
 TRAJNET_FILES = {"lcas": "lcas.ndjson", "wildtrack": "wildtrack.ndjson"}
 
 
@@ -37,6 +40,26 @@ def scene_files(data_dir: Path, scene: str) -> list[Path]:
     return files
 
 
+def data_files(pattern: str) -> list[Path]:
+    """Your own files: one file, every .txt / .ndjson in a folder, or a glob's matches."""
+    path = Path(pattern)
+    if path.is_file():
+        return [path]
+    found = path.iterdir() if path.is_dir() else map(Path, glob.glob(pattern))
+    files = sorted(p for p in found if p.suffix in TRACK_SUFFIXES and p.is_file())
+    if not files:
+        raise DataError(f"{pattern}: no trajectory files (.txt or .ndjson) there")
+    return files
+
+
+def data_name(pattern: str) -> str:
+    """The name that runs and labels give your own data: the file's or the folder's."""
+    path = Path(pattern)
+    if path.is_file():
+        return path.stem
+    return path.name if path.is_dir() else path.parent.name
+
+
 def has_validation(config: DataConfig) -> bool:
     return config.protocol in ("paper-val", "loo")
 
@@ -47,19 +70,27 @@ def load_split(config: DataConfig, split: str) -> WindowSet:
     data_dir = Path(config.data_dir) if config.data_dir else default_data_dir()
     name = f"{config.scene}/{config.protocol}/{split}"
     per_file: list[tuple[Path, list[Window]]] = []
-    if config.protocol == "loo":
-        for path in _loo_files(data_dir, config.scene, split):
-            per_file.append((path, kept(_cut(path, config.seq_len, config.drop_off_grid))))
+    if config.data:
+        files = data_files(config.data)
+    elif config.protocol == "loo":
+        files = _loo_files(data_dir, config.scene, split)
     else:
-        for path in scene_files(data_dir, config.scene):
-            windows = _cut(path, config.seq_len, config.drop_off_grid)
+        files = scene_files(data_dir, config.scene)
+    for path in files:
+        windows = _cut(path, config)
+        if config.protocol == "loo" or split == "all":
+            per_file.append((path, kept(windows)))
+        else:
             per_file.append((path, _temporal_split(windows, config, split)))
     return WindowSet(tuple(w for _, windows in per_file for w in windows), name,
                      tuple((str(path), len(windows)) for path, windows in per_file))
 
 
 def _check(config: DataConfig, split: str) -> None:
-    if config.scene not in SCENES:
+    if config.data and config.protocol == "loo":
+        raise DataError("protocol 'loo' is defined for the bundled ETH/UCY scenes, not for "
+                        "your own files; use 'paper' (a temporal 80/20 split of each file)")
+    if config.scene not in SCENES and not config.data:
         raise DataError(f"unknown scene {config.scene!r}; choose one of {', '.join(SCENES)}")
     if config.protocol not in PROTOCOLS:
         raise DataError(f"unknown protocol {config.protocol!r}; choose one of "
@@ -75,8 +106,11 @@ def _check(config: DataConfig, split: str) -> None:
 
 
 @functools.lru_cache(maxsize=64)
-def _cut(path: Path, seq_len: int, drop_off_grid: bool) -> tuple[Window | None, ...]:
-    return tuple(cut_windows(read_tracks(path, drop_off_grid=drop_off_grid), seq_len))
+def _cut(path: Path, config: DataConfig) -> tuple[Window | None, ...]:
+    tracks = read_tracks(path, drop_off_grid=config.drop_off_grid)
+    if config.data:                       # bundled scenes are used as released (0.4 s apart)
+        tracks = to_model_rate(tracks, config.fps, MODEL_HZ, config.scale)
+    return tuple(cut_windows(tracks, config.seq_len))
 
 
 def _temporal_split(windows: tuple[Window | None, ...], config: DataConfig,

@@ -32,9 +32,10 @@ class Tracks:
       frames: (R,) int64 frame ids.
       pedestrians: (R,) int64 pedestrian ids.
       xy: (R, 2) float64 positions in metres.
-      frame_step: frame-id difference between consecutive annotation steps (0.4 s): the
-        most common difference between a pedestrian's consecutive frames. Every row lies on
-        the file's grid of that step (rows off it are an error, or dropped on request).
+      frame_step: frame-id difference between consecutive annotation steps: the most
+        common difference between a pedestrian's consecutive frames. Every row lies on the
+        file's grid of that step (rows off it are an error, or dropped on request).
+      rate_hz: annotations per second stated by the file (a TrajNet++ scene's "fps"), or None.
     """
 
     path: str
@@ -42,6 +43,7 @@ class Tracks:
     pedestrians: np.ndarray
     xy: np.ndarray
     frame_step: int
+    rate_hz: float | None = None
 
 
 def read_tracks(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
@@ -86,7 +88,7 @@ def read_text_tracks(path: str | Path, *, drop_off_grid: bool = False) -> Tracks
 def read_trajnet_ndjson(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
     """TrajNet++ ndjson: `{"track": {"f", "p", "x", "y"}}` rows; `{"scene": ...}` rows skipped."""
     path = Path(path)
-    rows = []
+    rows, rates = [], set()
     for line_number, line in _lines(path):
         try:
             record = json.loads(line)
@@ -95,6 +97,8 @@ def read_trajnet_ndjson(path: str | Path, *, drop_off_grid: bool = False) -> Tra
         if not isinstance(record, dict) or not ({"scene", "track"} & record.keys()):
             raise DataError(f"{path}:{line_number}: expected a 'scene' or 'track' record")
         if "scene" in record:
+            if isinstance(record["scene"], dict) and "fps" in record["scene"]:
+                rates.add(record["scene"]["fps"])
             continue
         track = record["track"]
         if not isinstance(track, dict):
@@ -107,7 +111,10 @@ def read_trajnet_ndjson(path: str | Path, *, drop_off_grid: bool = False) -> Tra
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise DataError(f"{path}:{line_number}: {name} is not a number: {value!r}")
         rows.append(_parse_row(path, line_number, [track[k] for k in ("f", "p", "x", "y")]))
-    return _build_tracks(path, rows, drop_off_grid)
+    tracks = _build_tracks(path, rows, drop_off_grid)
+    if len(rates) > 1:
+        raise DataError(f"{path}: its scenes state several rates ({sorted(rates)} fps)")
+    return dataclasses.replace(tracks, rate_hz=float(rates.pop()) if rates else None)
 
 
 def _parse_row(path: Path, line_number: int, fields: list) -> tuple[int, int, float, float, int]:
@@ -160,6 +167,28 @@ def _build_tracks(path: Path, rows: list, drop_off_grid: bool = False) -> Tracks
     order = np.lexsort((pedestrians, frames))
     return Tracks(path=str(path), frames=frames[order], pedestrians=pedestrians[order],
                   xy=xy[order], frame_step=frame_step)
+
+
+def to_model_rate(tracks: Tracks, fps: float | None, model_hz: float, scale: float = 1.0
+                  ) -> Tracks:
+    """Tracks at the model's rate and in metres: annotations at k times `model_hz` keep every
+    k-th one; any other rate is refused. fps: frame ids per second (None: the file's stated
+    rate, else annotations taken to be at the model's rate); scale: metres per unit."""
+    if fps is None:
+        rate = tracks.rate_hz or model_hz
+        fps = rate * tracks.frame_step
+    rate = fps / tracks.frame_step
+    keep_every = rate / model_hz
+    if keep_every < 1 - 1e-6 or abs(keep_every - round(keep_every)) > 1e-6:
+        raise DataError(f"{tracks.path}: annotated at {rate:g} Hz (a row every "
+                        f"{tracks.frame_step} frame ids at {fps:g} per second), which is not a "
+                        f"multiple of the model's {model_hz:g} Hz")
+    step = tracks.frame_step * round(keep_every)
+    on_grid = (tracks.frames - tracks.frames.min()) % step == 0
+    return dataclasses.replace(tracks, frames=tracks.frames[on_grid],
+                               pedestrians=tracks.pedestrians[on_grid],
+                               xy=tracks.xy[on_grid] * scale, frame_step=step,
+                               rate_hz=model_hz)
 
 
 def _frame_grid(frames: np.ndarray, pedestrians: np.ndarray) -> tuple[int, int]:

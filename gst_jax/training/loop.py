@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import sys
+from functools import partial
 import time
-from typing import Any, Callable, TextIO
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -30,37 +30,15 @@ from gst_jax.compiles import count_compiles
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import evaluate_params
 from gst_jax.predict import make_predict
-from gst_jax.runs import RunError, WorkDir, run_config
-from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
-                                    parameter_key, step_key, validation_key)
+from gst_jax.progress import Progress, hms
+from gst_jax.runs import Run, RunError, WorkDir, load_model, run_config
+from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
+                                    hparams_for_epoch, make_optimizer, parameter_key, step_key,
+                                    validation_key)
 from gst_jax.training.step import make_train_step
 
 class NonFiniteError(RuntimeError):
     """A single run's step had a non-finite loss or gradient; the last checkpoint is kept."""
-
-
-class Progress:
-    """One status line per epoch on any stream; a live line within the epoch on a terminal."""
-
-    def __init__(self, stream: TextIO | None = None):
-        self.stream = stream or sys.stderr
-        self.live = self.stream.isatty()
-
-    def step(self, epoch: int, epochs: int, step: int, steps: int, scenes_per_s: float,
-             loss: float, eta_s: float) -> None:
-        if self.live:
-            self.stream.write(f"\repoch {epoch}/{epochs} step {step}/{steps} "
-                              f"{scenes_per_s:6.1f} scenes/s loss {loss:.4f} ETA {_hms(eta_s)}  ")
-            self.stream.flush()
-
-    def line(self, text: str) -> None:
-        self.stream.write(("\r" if self.live else "") + text + "\n")
-        self.stream.flush()
-
-
-def _hms(seconds: float) -> str:
-    seconds = int(max(seconds, 0))
-    return f"{seconds // 3600:d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,10 +125,11 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                     scenes += packed.num_scenes
                     done = (epoch - start_epoch) * steps_per_epoch + step + 1
                     seconds_per_step = (time.perf_counter() - run_start) / done
-                    progress.step(epoch, train_config.epochs, step + 1, steps_per_epoch,
-                                  scenes / max(time.perf_counter() - epoch_start, 1e-9),
-                                  float(np.mean(loss_sum)) / scenes,
-                                  seconds_per_step * (total_steps - done))
+                    progress.live(
+                        f"epoch {epoch}/{train_config.epochs} step {step + 1}/{steps_per_epoch} "
+                        f"{scenes / max(time.perf_counter() - epoch_start, 1e-9):6.1f} scenes/s "
+                        f"loss {float(np.mean(loss_sum)) / scenes:.4f} "
+                        f"ETA {hms(seconds_per_step * (total_steps - done))}")
 
             epoch_time = time.perf_counter() - epoch_start
             record = {"epoch": epoch, "loss": training.per_member(loss_sum / max(scenes, 1.0)),
@@ -201,11 +180,17 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     """Train (or resume) one run in `workdir`; returns the summary also written there."""
     workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
     train_set = load_train_set(data_config, train_config)
+    seed = train_config.seed
+    if train_config.init:
+        source = load_model(train_config.init)
+        check_same_layout(model_config, source)
+        init_state = partial(fine_tuning_state, source)
+    else:
+        init_state = partial(create_train_state, model_config, parameter_key(seed))
     config = run_config(model_config, data_config, train_config)
     workdir.prepare(config)
-    seed = train_config.seed
     training = Training(
-        init_state=lambda: create_train_state(model_config, parameter_key(seed)),
+        init_state=init_state,
         train_step=make_train_step(model_config, rotate=train_config.rotate),
         hparams=lambda epoch: hparams_for_epoch(model_config, train_config, epoch),
         seeds=(seed,))
@@ -219,6 +204,27 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
                "config": config}
     workdir.write_summary(summary)
     return summary
+
+
+def fine_tuning_state(source: Run) -> TrainState:
+    """A fresh optimiser on the parameters of `source` (fine-tuning)."""
+    return TrainState(params=source.params, opt_state=make_optimizer().init(source.params),
+                      step=jnp.int32(0))
+
+
+def check_same_layout(model_config: ModelConfig, source: Run) -> None:
+    """Refuse to fine-tune `source` as `model_config` unless their parameters have the same
+    arrays (path and shape), as a resume would."""
+    expected = jax.tree_util.tree_flatten_with_path(abstract_train_state(model_config).params)[0]
+    given = jax.tree_util.tree_flatten_with_path(source.params)[0]
+    layout = {jax.tree_util.keystr(path): tuple(leaf.shape) for path, leaf in expected}
+    theirs = {jax.tree_util.keystr(path): tuple(leaf.shape) for path, leaf in given}
+    if layout != theirs:
+        different = sorted(k for k in layout.keys() | theirs.keys()
+                           if layout.get(k) != theirs.get(k))
+        raise RunError(f"{source.name} has another architecture than this run (e.g. "
+                       f"{different[0]}: {theirs.get(different[0])} against "
+                       f"{layout.get(different[0])}); fine-tune a model of the same shapes")
 
 
 def _validation(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig

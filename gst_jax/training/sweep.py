@@ -25,8 +25,9 @@ from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import evaluate_params
 from gst_jax.model import Controls
 from gst_jax.predict import make_predict
+from gst_jax.progress import Progress
 from gst_jax.runs import WorkDir, run_config
-from gst_jax.training.loop import Progress, Training, load_train_set, train_epochs
+from gst_jax.training.loop import Training, load_train_set, train_epochs
 from gst_jax.training.members import Member, member_config, stack, unstack
 from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
                                     parameter_key)

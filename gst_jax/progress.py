@@ -1,0 +1,44 @@
+"""Progress of long work on a stream: a live line on a terminal, plain lines in a log."""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import TextIO
+
+
+def hms(seconds: float) -> str:
+    seconds = int(max(seconds, 0))
+    return f"{seconds // 3600:d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+class Progress:
+    """`live` lines overwrite each other on a terminal (and are skipped elsewhere); `line`
+    always writes; `count` reports k of n items with their rate and an ETA."""
+
+    def __init__(self, stream: TextIO | None = None):
+        self.stream = stream or sys.stderr
+        self.is_terminal = self.stream.isatty()
+        self._reported_tenth = -1
+
+    def live(self, text: str) -> None:
+        if self.is_terminal:
+            self.stream.write("\r" + text + "  ")
+            self.stream.flush()
+
+    def line(self, text: str) -> None:
+        self.stream.write(("\r" if self.is_terminal else "") + text + "\n")
+        self.stream.flush()
+
+    def count(self, what: str, done: int, total: int, started: float) -> None:
+        """`what done/total, rate/s, ETA`: live on a terminal, else a line every tenth."""
+        elapsed = max(time.perf_counter() - started, 1e-9)
+        text = (f"{what} {done}/{total}, {done / elapsed:.1f}/s, "
+                f"ETA {hms(elapsed / max(done, 1) * (total - done))}")
+        if self.is_terminal:
+            self.live(text)
+            if done == total:
+                self.line(text)
+        elif (tenth := 10 * done // max(total, 1)) > self._reported_tenth:
+            self._reported_tenth = tenth
+            self.line(text)
