@@ -18,6 +18,8 @@ import jax
 from gst_jax.config import (EDGE_HEAD_CHOICES, OUTPUTS, PROTOCOLS, SCENES, TEMPORAL_MODELS,
                             DataConfig, ModelConfig, TrainConfig)
 from gst_jax.data import DataError, data_name
+from gst_jax.parallel import DeviceError, Devices, join_processes
+from gst_jax.parallel import devices as parallel_devices
 from gst_jax.runs import RunError
 from gst_jax.training.loop import NonFiniteError
 from gst_jax.training.members import DETECTION
@@ -25,7 +27,7 @@ from gst_jax.training.members import DETECTION
 _TRAIN_DEFAULTS = TrainConfig()
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048}
 # Errors whose message is the whole story: a command prints it on one line and exits 1.
-USER_ERRORS = (DataError, RunError, NonFiniteError)
+USER_ERRORS = (DataError, RunError, NonFiniteError, DeviceError)
 
 
 def positive_int(text: str) -> int:
@@ -76,6 +78,9 @@ def run(command: Callable[[argparse.Namespace], None], parser: argparse.Argument
         raise SystemExit(f"error: {error}") from None
     except KeyboardInterrupt:
         raise SystemExit("interrupted; rerun the same command to resume") from None
+    except BrokenPipeError:       # the reader of stdout left (`| head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise SystemExit(1) from None
 
 
 def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False) -> None:
@@ -112,6 +117,18 @@ def add_own_data_flags(group) -> None:
                             "file's own rate, else rows 0.4 s apart)")
     group.add_argument("--units", default="m", choices=tuple(UNITS),
                        help="unit of --data's coordinates (default: m)")
+
+
+def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
+    """--split, --samples, --seed, --epoch: which windows a model predicts, and how."""
+    parser.add_argument("--split", default="test", choices=("test", "val", "train", "all"),
+                        help="which split; all: every window (default: test)")
+    parser.add_argument("--samples", type=positive_int, default=20,
+                        help="K: runs of the paper protocol / samples for best-of-K and KDE "
+                             "(default: 20)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default: 0)")
+    parser.add_argument("--epoch", type=int, default=None,
+                        help="checkpoint epoch (default: latest)")
 
 
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
@@ -171,6 +188,30 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
                        help=f"epochs between checkpoints (default: {d.checkpoint_every})")
     group.add_argument("--max-train-windows", type=count, default=0,
                        help="train on the first k windows only (smoke tests; default: all)")
+
+
+def add_device_flags(parser: argparse.ArgumentParser) -> None:
+    """--devices, and --coordinator / --num-processes / --process-id for several machines."""
+    group = parser.add_argument_group("devices (see the README's 'Scaling out')")
+    group.add_argument("--devices", type=positive_int, default=None,
+                       help="use the first N local devices (default: all of them; with "
+                            "several processes, every device of every process)")
+    group.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                       help="join several processes with jax.distributed: the address of "
+                            "process 0; 'auto' reads the cluster's environment (Slurm, ...)")
+    group.add_argument("--num-processes", type=positive_int, default=None,
+                       help="with --coordinator HOST:PORT: how many processes join")
+    group.add_argument("--process-id", type=count, default=None,
+                       help="with --coordinator HOST:PORT: this process's rank, 0 to N-1")
+
+
+def devices(args: argparse.Namespace) -> Devices | None:
+    """The devices the flags name; None for one device (the single-device program)."""
+    if args.coordinator is not None:
+        auto = args.coordinator == "auto"
+        join_processes(None if auto else args.coordinator, args.num_processes, args.process_id)
+    chosen = parallel_devices(args.devices)
+    return chosen if chosen.count > 1 else None
 
 
 def add_output_flags(parser: argparse.ArgumentParser, *, workdir_help: str,

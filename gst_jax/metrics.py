@@ -97,6 +97,47 @@ def collision_sums(positions: np.ndarray, mask: np.ndarray,
         pairs, collided.shape[:-3]).astype(float)
 
 
+# TrajNet++ (Kothari et al. 2021): a pedestrian is a disc of radius 0.1 m; two collide when
+# their discs touch at a step or half-way between consecutive steps.
+TRAJNET_PERSON_RADIUS = 0.1
+
+
+def trajnet_collision_sums(pred: np.ndarray, truth: np.ndarray, primary_mask: np.ndarray,
+                           predicted_mask: np.ndarray, truth_step_mask: np.ndarray) -> dict:
+    """TrajNet++'s Col-I and Col-II with every pedestrian of `primary_mask` as primary in turn.
+
+    Col-I: the primary's predicted path meets another pedestrian's predicted path (same
+    sample); Col-II: it meets another pedestrian's ground truth, over the segments whose both
+    ends exist. TrajNet++ interpolates each segment at 2 parts (its ends and its midpoint).
+    pred (K, B, P, N, 2), truth (B, P, N, 2), primary_mask / predicted_mask (B, N),
+    truth_step_mask (B, P, N) -> {"col1_sum": (K,), "col2_sum": (K,), "count": ()}.
+    """
+    pred = np.nan_to_num(np.asarray(pred, np.float64))
+    truth = np.asarray(truth, np.float64)
+    primary = np.asarray(primary_mask) > 0
+    others = ~np.eye(primary.shape[-1], dtype=bool)
+
+    def points(paths):                      # (..., P, N, 2) -> (..., 2P - 1, N, 2)
+        midpoints = (paths[..., 1:, :, :] + paths[..., :-1, :, :]) / 2
+        return np.concatenate([paths, midpoints], axis=-3)
+
+    def meets(neighbour_paths, neighbour_valid):
+        """(K, B, N) whether each primary's predicted path meets any valid neighbour's."""
+        gap = np.linalg.norm(points(pred)[..., :, None, :] - points(neighbour_paths)[..., None, :, :],
+                             axis=-1)                                   # (K, B, 2P-1, N, N)
+        touching = (gap <= 2 * TRAJNET_PERSON_RADIUS) & neighbour_valid[..., None, :] & others
+        return np.any(touching, axis=(-3, -1)) & primary
+
+    valid = np.asarray(truth_step_mask) > 0                             # (B, P, N)
+    segment_valid = valid[:, 1:] & valid[:, :-1]
+    truth_valid = np.concatenate([valid, segment_valid], axis=1)        # (B, 2P-1, N)
+    predicted = np.asarray(predicted_mask) > 0
+    predicted_valid = np.broadcast_to(predicted[:, None], truth_valid.shape)
+    return {"col1_sum": meets(pred, predicted_valid).sum(axis=(1, 2)).astype(float),
+            "col2_sum": meets(truth, truth_valid).sum(axis=(1, 2)).astype(float),
+            "count": float(primary.sum())}
+
+
 def constant_velocity(obs_positions: np.ndarray, obs_node_mask: np.ndarray, *,
                       pred_len: int) -> np.ndarray:
     """Constant-velocity baseline: repeat the last observed displacement.

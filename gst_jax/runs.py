@@ -78,6 +78,8 @@ class Checkpointer:
             state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),
             metrics=ocp.args.JsonSave(records)))
         self._manager.wait_until_finished()
+        if jax.process_index() != 0:            # the checksums are written once
+            return
         checksums = self._read_checksums()
         checksums[str(epoch)] = self._checksum(epoch)
         kept = {str(e) for e in self._manager.all_steps()}
@@ -88,8 +90,11 @@ class Checkpointer:
                 fall_back: bool = False) -> Restored:
         """Restore `epoch` (default: the latest); `like_state` (arrays or their abstract
         shapes) gives the tree structure and dtypes. With `fall_back`, a checkpoint that fails
-        its checksum or cannot be read is skipped for the one before it."""
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, like_state)
+        its checksum or cannot be read is skipped for the one before it. The arrays come back
+        on this process's first device, whatever devices saved them."""
+        here = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        abstract = jax.tree.map(
+            lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=here), like_state)
         candidates = [epoch] if epoch is not None else sorted(self._manager.all_steps(),
                                                               reverse=True)
         problems = []
@@ -197,10 +202,16 @@ def sweep_name(data_config: DataConfig, train_config: TrainConfig) -> str:
 
 
 class WorkDir:
-    """The files of one work directory (see the module docstring for the layout)."""
+    """The files of one work directory (see the module docstring for the layout).
+
+    With several processes (`gst_jax.parallel`), process 0 alone writes the files that are
+    written once (config, metrics, summary, evaluations); the checkpoints are written by
+    all, through orbax's multi-process path.
+    """
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        self.writes = jax.process_index() == 0
 
     def __repr__(self) -> str:
         return f"WorkDir({str(self.path)!r})"
@@ -234,7 +245,8 @@ class WorkDir:
                                "configuration (its config.json is missing); choose another "
                                "--workdir or delete it")
         self.path.mkdir(parents=True, exist_ok=True)
-        config_path.write_text(json.dumps(config, indent=2) + "\n")
+        if self.writes:
+            config_path.write_text(json.dumps(config, indent=2) + "\n")
 
     def checkpointer(self, *, create: bool = True) -> Checkpointer:
         """The run's checkpoints; `create=False` reads only and fails without creating
@@ -252,20 +264,25 @@ class WorkDir:
                 if line.strip()]
 
     def append_metrics(self, record: dict) -> None:
+        if not self.writes:
+            return
         with self.metrics_path.open("a") as f:
             f.write(json.dumps(record) + "\n")
 
     def write_metrics(self, records: list[dict]) -> None:
         """Replace metrics.jsonl by `records` (a resume: those of its checkpoint, which drop
         what a killed run wrote after it and restore what it did not get to write)."""
-        _write_atomically(self.metrics_path, "".join(json.dumps(r) + "\n" for r in records))
+        if self.writes:
+            lines = "".join(json.dumps(r) + "\n" for r in records)
+            _write_atomically(self.metrics_path, lines)
 
     def training_time_s(self) -> float:
         """Sum of the epoch times: the training's wall time across resumes."""
         return sum(r.get("epoch_time_s", 0.0) for r in self.read_metrics())
 
     def write_summary(self, summary: dict) -> None:
-        (self.path / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        if self.writes:
+            (self.path / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
 
     def evaluation_path(self, data_config: DataConfig, split: str, epoch: int) -> Path:
         """eval/<scene>-<protocol>-<split>-e<epoch>.json (the .md beside it)."""

@@ -24,6 +24,7 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_data_flags(parser)
     cli.add_model_flags(parser, several_edge_heads=True)
     cli.add_train_flags(parser, sweep=True)
+    cli.add_device_flags(parser)
     parser.add_argument("--eval-samples", type=cli.positive_int, default=20,
                         help="K samples (runs) per member in the evaluation (default: 20)")
     parser.add_argument("--max-eval-windows", type=cli.count, default=0,
@@ -42,7 +43,8 @@ def sweep(args) -> None:
     workdir = Path(args.workdir or RUNS / sweep_name(data_config, train_config))
     cli.say(f"work directory: {workdir}; {len(members)} members, head slots {config.head_slots}")
     results = fit_sweep(config, data_config, train_config, members, workdir,
-                        eval_samples=args.eval_samples, max_eval_windows=args.max_eval_windows)
+                        eval_samples=args.eval_samples, max_eval_windows=args.max_eval_windows,
+                        devices=cli.devices(args))
     if args.json:
         print(json.dumps(results, indent=2))
     else:

@@ -23,6 +23,7 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_data_flags(parser)
     cli.add_model_flags(parser)
     cli.add_train_flags(parser)
+    cli.add_device_flags(parser)
     cli.add_output_flags(parser, workdir_help="where checkpoints, metrics.jsonl and summary.json "
                          "go; rerunning the same command resumes there "
                          "(default: runs/<scene>-<protocol>-<d|p>-n<n>-e<epochs>-seed<seed>)")
@@ -34,7 +35,7 @@ def train(args) -> None:
                                                cli.train_config(args))
     workdir = Path(args.workdir or RUNS / run_name(data_config, model_config, train_config))
     cli.say(f"work directory: {workdir}")
-    summary = fit(model_config, data_config, train_config, workdir)
+    summary = fit(model_config, data_config, train_config, workdir, devices=cli.devices(args))
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

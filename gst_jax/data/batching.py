@@ -70,42 +70,54 @@ def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int
 
 
 def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int = 0,
-                     epoch: int = 0) -> Iterator[PackedStep]:
+                     epoch: int = 0, slots_multiple: int = 1) -> Iterator[PackedStep]:
     """One packed step per optimiser step: shuffled windows taken `batch_size` at a time.
 
     As in the release, a step averages `batch_size` randomly drawn scenes (the last step of
     an epoch fewer). The order is a function of (seed, epoch) only, so a resumed run sees
-    the same steps.
+    the same steps. slots_multiple: every micro-batch holds a multiple of this many scenes
+    (the devices it is split over; see `pack_step`).
     """
     order = np.random.default_rng([seed, epoch]).permutation(len(window_set))
     for start in range(0, len(order), batch_size):
         chosen = order[start:start + batch_size]
-        yield pack_step([window_set[i] for i in chosen], chosen, batch_size)
+        yield pack_step([window_set[i] for i in chosen], chosen, batch_size, slots_multiple)
 
 
 def pack_step(windows: Sequence[Window], window_index: Sequence[int],
-              shared_slots: int = 16) -> PackedStep:
+              shared_slots: int = 16, slots_multiple: int = 1) -> PackedStep:
     """A step's windows in micro-batches: those of up to SHARED_MICRO_BATCH_MAX pedestrians
     together in one batch of `shared_slots` scenes padded to the largest of them, each
     larger window alone, padded to its TRAINING_BUCKETS size. The programs of an epoch are
-    thus one per (bucket, 1) and per small bucket: a fixed, small set."""
+    thus one per (bucket, 1) and per small bucket: a fixed, small set.
+
+    slots_multiple > 1 (scenes split over that many devices): every micro-batch holds a
+    multiple of it; the larger windows go in groups of that many, by size, each group
+    padded to the bucket of its largest.
+    """
     small = [k for k, w in enumerate(windows) if w.num_pedestrians <= SHARED_MICRO_BATCH_MAX]
     large = [k for k, w in enumerate(windows) if w.num_pedestrians > SHARED_MICRO_BATCH_MAX]
     micro_batches = []
     if small:
         size = bucket_size(max(windows[k].num_pedestrians for k in small), TRAINING_BUCKETS)
-        micro_batches.append(pad_windows([windows[k] for k in small], size,
-                                         max(shared_slots, len(small)),
+        slots = -(-max(shared_slots, len(small)) // slots_multiple) * slots_multiple
+        micro_batches.append(pad_windows([windows[k] for k in small], size, slots,
                                          [window_index[k] for k in small]))
-    for k in large:
-        size = bucket_size(windows[k].num_pedestrians, TRAINING_BUCKETS)
-        micro_batches.append(pad_windows([windows[k]], size, 1, [window_index[k]]))
+    if slots_multiple > 1:              # similar sizes share a group: less padding
+        large.sort(key=lambda k: windows[k].num_pedestrians)
+    for start in range(0, len(large), slots_multiple):
+        group = large[start:start + slots_multiple]
+        size = bucket_size(max(windows[k].num_pedestrians for k in group), TRAINING_BUCKETS)
+        micro_batches.append(pad_windows([windows[k] for k in group], size, slots_multiple,
+                                         [window_index[k] for k in group]))
     return PackedStep(tuple(micro_batches), len(windows))
 
 
 def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
-                       buckets: Sequence[int] = BUCKETS) -> Iterator[SceneBatch]:
-    """Every window once, grouped by bucket, B = max(1, edge_budget // N^2) scenes per batch.
+                       buckets: Sequence[int] = BUCKETS,
+                       batch_multiple: int = 1) -> Iterator[SceneBatch]:
+    """Every window once, grouped by bucket, B = max(1, edge_budget // N^2) scenes per batch
+    (rounded up to a multiple of `batch_multiple`: the devices the batch is split over).
 
     A 90-pedestrian window never shares a padded size with an 8-pedestrian one, and B N^2
     stays within the budget; `window_index` maps each scene back to `window_set`.
@@ -115,7 +127,7 @@ def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
         by_bucket.setdefault(bucket_size(window.num_pedestrians, buckets), []).append(index)
     for size in sorted(by_bucket):
         indices = by_bucket[size]
-        batch_size = max(1, edge_budget // size ** 2)
+        batch_size = -(-max(1, edge_budget // size ** 2) // batch_multiple) * batch_multiple
         for start in range(0, len(indices), batch_size):
             chosen = indices[start:start + batch_size]
             yield pad_windows([window_set[i] for i in chosen], size, batch_size, chosen)

@@ -29,13 +29,15 @@ from gst_jax import data
 from gst_jax.compiles import count_compiles
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import evaluate_params
+from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress, hms
 from gst_jax.runs import Run, RunError, WorkDir, load_model, run_config
 from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
                                     hparams_for_epoch, make_optimizer, parameter_key, step_key,
                                     validation_key)
-from gst_jax.training.step import make_train_step
+from gst_jax.training.step import TrainStep, make_train_step
+
 
 class NonFiniteError(RuntimeError):
     """A single run's step had a non-finite loss or gradient; the last checkpoint is kept."""
@@ -47,15 +49,16 @@ class Training:
 
     Attributes:
       init_state: () -> a fresh state; called only when there is no checkpoint to resume.
-      train_step: (state, key, packed step, hparams) -> (state, metrics), a `TrainStep`; for
-        a sweep every argument but the packed step carries the member axis.
+      train_step: a `TrainStep`: (state, key, packed step, hparams) -> (state, metrics); for
+        a sweep every argument but the packed step carries the member axis. Its devices
+        are those the loop trains on.
       hparams: epoch -> HParams (stacked for a sweep).
       seeds: one per member (one for a single run); they derive the step keys.
       member_names: None for a single run (unstacked state, scalar metrics).
     """
 
     init_state: Callable[[], TrainState]
-    train_step: Callable
+    train_step: TrainStep
     hparams: Callable[[int], HParams]
     seeds: tuple[int, ...]
     member_names: tuple[str, ...] | None = None
@@ -74,8 +77,9 @@ class Training:
 def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: data.WindowSet,
                  train_config: TrainConfig, *, stop_on_non_finite: bool,
                  after_epoch: Callable[[int, TrainState], dict] | None = None,
-                 progress: Progress | None = None) -> TrainState:
-    """Train (or resume) up to `train_config.epochs`; returns the final state.
+                 progress: Progress | None = None) -> tuple[TrainState, list[dict]]:
+    """Train (or resume) up to `train_config.epochs`; returns the final state and the metrics
+    records of every epoch.
 
     config: the run's JSON config, stored with every checkpoint. after_epoch: extra fields
     of an epoch's metrics record (validation), given the epoch and its final state.
@@ -96,6 +100,8 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     # after the checkpoint goes, what it did not get to write comes back.
     workdir.write_metrics(records)
     start_epoch = last_epoch + 1
+    train_step = training.train_step
+    state = train_step.place(state)
 
     steps_per_epoch = math.ceil(len(train_set) / train_config.batch_size)
     total_steps = (train_config.epochs - start_epoch + 1) * steps_per_epoch
@@ -103,15 +109,16 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     run_start = time.perf_counter()
     try:
         for epoch in range(start_epoch, train_config.epochs + 1):
-            hparams = training.hparams(epoch)
+            hparams = train_step.place(training.hparams(epoch))
             epoch_start = time.perf_counter()
             loss_sum, non_finite, scenes = np.zeros(members), np.zeros(members, int), 0.0
             steps = data.training_batches(train_set, batch_size=train_config.batch_size,
-                                          seed=train_config.seed, epoch=epoch)
+                                          seed=train_config.seed, epoch=epoch,
+                                          slots_multiple=train_step.slots_multiple)
             with count_compiles() as compiles:
                 for step, packed in enumerate(steps):
-                    state, metrics = training.train_step(state, training.step_keys(epoch, step),
-                                                         packed, hparams)
+                    keys = train_step.place(training.step_keys(epoch, step))
+                    state, metrics = train_step(state, keys, packed, hparams)
                     loss = np.atleast_1d(np.asarray(metrics["loss"], np.float64))
                     finite = np.atleast_1d(np.asarray(metrics["finite"]))
                     if stop_on_non_finite and not finite.all():
@@ -151,7 +158,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
             progress.line(_format_record(record))
     finally:
         checkpointer.close()
-    return state
+    return state, records
 
 
 def _format_record(record: dict) -> str:
@@ -176,8 +183,10 @@ def load_train_set(data_config: DataConfig, train_config: TrainConfig) -> data.W
 
 
 def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
-        workdir: str | WorkDir, *, progress: Progress | None = None) -> dict:
-    """Train (or resume) one run in `workdir`; returns the summary also written there."""
+        workdir: str | WorkDir, *, progress: Progress | None = None,
+        devices: Devices | None = None) -> dict:
+    """Train (or resume) one run in `workdir`; returns the summary also written there.
+    devices: each step's scenes are split over them (`gst_jax.parallel`)."""
     workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
     train_set = load_train_set(data_config, train_config)
     seed = train_config.seed
@@ -191,15 +200,16 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     workdir.prepare(config)
     training = Training(
         init_state=init_state,
-        train_step=make_train_step(model_config, rotate=train_config.rotate),
+        train_step=make_train_step(model_config, rotate=train_config.rotate, devices=devices),
         hparams=lambda epoch: hparams_for_epoch(model_config, train_config, epoch),
         seeds=(seed,))
     start = time.perf_counter()
-    train_epochs(training, workdir, config, train_set, train_config, stop_on_non_finite=True,
-                 after_epoch=_validation(model_config, data_config, train_config),
-                 progress=progress)
+    _, records = train_epochs(
+        training, workdir, config, train_set, train_config, stop_on_non_finite=True,
+        after_epoch=_validation(model_config, data_config, train_config, devices),
+        progress=progress)
     summary = {"workdir": str(workdir.path), "epochs": train_config.epochs,
-               "final_loss": workdir.read_metrics()[-1]["loss"],
+               "final_loss": records[-1]["loss"],
                "wall_time_s": time.perf_counter() - start, "train_windows": len(train_set),
                "config": config}
     workdir.write_summary(summary)
@@ -227,8 +237,8 @@ def check_same_layout(model_config: ModelConfig, source: Run) -> None:
                        f"{layout.get(different[0])}); fine-tune a model of the same shapes")
 
 
-def _validation(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig
-                ) -> Callable[[int, TrainState], dict] | None:
+def _validation(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
+                devices: Devices | None) -> Callable[[int, TrainState], dict] | None:
     """Validation AOE/FOE (one sample) every `eval_every` epochs and at the last, where the
     protocol has a validation split."""
     if not (data.has_validation(data_config) and train_config.eval_every):
@@ -242,7 +252,8 @@ def _validation(model_config: ModelConfig, data_config: DataConfig, train_config
             return {}
         result = evaluate_params(state.params, validation_key(train_config.seed, epoch), val_set,
                                  model_config, num_samples=1, predict=predict,
-                                 fully_detected_only=train_config.fully_detected_only)
+                                 fully_detected_only=train_config.fully_detected_only,
+                                 devices=devices)
         return {"val_aoe": result["aoe"], "val_foe": result["foe"]}
 
     return validate

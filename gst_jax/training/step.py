@@ -19,6 +19,7 @@ from gst_jax import augment, losses
 from gst_jax.config import ModelConfig
 from gst_jax.data import PackedStep, SceneBatch
 from gst_jax.graph import drop_partially_detected
+from gst_jax.parallel import Devices
 from gst_jax.rollout import rollout
 from gst_jax.training.state import HParams, TrainState, make_optimizer
 
@@ -49,10 +50,16 @@ class TrainStep:
 
     A step whose loss or gradients are not finite leaves the state unchanged and reports
     `finite = False`; the epoch loop decides what that means (stop, or count and go on).
+
+    With `devices`, each micro-batch's scenes are split over them (a sweep's micro-batches
+    are copied to every device instead: its members are split); the state, keys and hparams
+    must already be placed (`place`).
     """
 
-    def __init__(self, config: ModelConfig, *, rotate: bool = True, members: bool = False):
+    def __init__(self, config: ModelConfig, *, rotate: bool = True, members: bool = False,
+                 devices: Devices | None = None):
         optimizer = make_optimizer()
+        self.devices, self.members = devices, members
 
         def accumulate(params, key, batch, hparams, num_scenes, loss_sum, grad_sum):
             loss, grads = jax.value_and_grad(training_loss)(
@@ -88,8 +95,22 @@ class TrainStep:
         num_scenes = jnp.float32(step.num_scenes)
         loss, grads = self._zeros(params)
         for batch in step.micro_batches:
+            if self.devices is not None:
+                batch = (self.devices.replicate if self.members else self.devices.split)(batch)
             loss, grads = self._accumulate(params, key, batch, hparams, num_scenes, loss, grads)
         return loss, grads
+
+    def place(self, tree: Any) -> Any:
+        """A state, key or hparams tree on the devices: copied to each, or (sweep members,
+        leading axis) split over them. Without devices, unchanged."""
+        if self.devices is None:
+            return tree
+        return (self.devices.split if self.members else self.devices.replicate)(tree)
+
+    @property
+    def slots_multiple(self) -> int:
+        """Micro-batches hold a multiple of this many scenes (those split over devices)."""
+        return self.devices.count if self.devices is not None and not self.members else 1
 
     def __call__(self, state: TrainState, key: jax.Array, step: PackedStep, hparams: HParams
                  ) -> tuple[TrainState, dict]:
@@ -103,7 +124,7 @@ def all_finite(tree: Any) -> jax.Array:
                               if jnp.issubdtype(leaf.dtype, jnp.floating)]))
 
 
-def make_train_step(config: ModelConfig, *, rotate: bool = True,
-                    members: bool = False) -> TrainStep:
+def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool = False,
+                    devices: Devices | None = None) -> TrainStep:
     """The training step of `config` (see TrainStep); already jit-compiled per shape."""
-    return TrainStep(config, rotate=rotate, members=members)
+    return TrainStep(config, rotate=rotate, members=members, devices=devices)

@@ -24,9 +24,10 @@ from gst_jax import data, figures
 from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import evaluate_params
 from gst_jax.model import Controls
+from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress
-from gst_jax.runs import WorkDir, run_config
+from gst_jax.runs import RunError, WorkDir, run_config
 from gst_jax.training.loop import Training, load_train_set, train_epochs
 from gst_jax.training.members import Member, member_config, stack, unstack
 from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
@@ -50,9 +51,15 @@ def member_hparams(config: ModelConfig, train_config: TrainConfig, members: Sequ
 
 def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
               members: Sequence[Member], workdir: str | WorkDir, *, eval_samples: int = 20,
-              max_eval_windows: int = 0, progress: Progress | None = None) -> dict:
+              max_eval_windows: int = 0, progress: Progress | None = None,
+              devices: Devices | None = None) -> dict:
     """Train (or resume) every member in `workdir`, evaluate each on the test split, and write
-    results.{json,csv,md} and figures. Returns the results dict."""
+    results.{json,csv,md} and figures. Returns the results dict. devices: the members are
+    split over them in training (members / devices per device), the test windows in
+    evaluation."""
+    if devices is not None and len(members) % devices.count:
+        raise RunError(f"{len(members)} members do not split over {devices.count} devices; "
+                       "give --devices a divisor of the member count")
     workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
     progress = progress or Progress()
     train_set = load_train_set(data_config, train_config)
@@ -60,30 +67,35 @@ def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainC
     workdir.prepare(sweep_config)
     training = Training(
         init_state=lambda: initial_states(config, members),
-        train_step=make_train_step(config, rotate=train_config.rotate, members=True),
+        train_step=make_train_step(config, rotate=train_config.rotate, members=True,
+                                   devices=devices),
         hparams=lambda epoch: member_hparams(config, train_config, members, epoch),
         seeds=tuple(m.seed for m in members), member_names=tuple(m.name for m in members))
     start = time.perf_counter()
-    state = train_epochs(training, workdir, sweep_config, train_set, train_config,
+    state, _ = train_epochs(training, workdir, sweep_config, train_set, train_config,
                          stop_on_non_finite=False, progress=progress)
     train_time = time.perf_counter() - start
 
     test_set = data.load_split(data_config, "test")
     if max_eval_windows:
         test_set = test_set.subset(range(min(max_eval_windows, len(test_set))))
-    evaluations = evaluate_members(state.params, config, test_set, members,
-                                   num_samples=eval_samples, progress=progress)
+    params = devices.gather(state.params) if devices is not None else state.params
+    evaluations = evaluate_members(params, config, test_set, members,
+                                   num_samples=eval_samples, progress=progress, devices=devices)
     results = summarize(evaluations, members, data_config, train_config, eval_samples, test_set)
     results.update(train_time_s=train_time, train_windows=len(train_set),
                    peak_rss_gib=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20)
-    write_results(results, workdir)
+    if workdir.writes:
+        write_results(results, workdir)
     return results
 
 
 def evaluate_members(stacked_params, config: ModelConfig, test_set: data.WindowSet,
                      members: Sequence[Member], *, num_samples: int,
-                     progress: Progress | None = None) -> list[dict]:
-    """Evaluate every member on `test_set` with one compiled `predict` per bucket."""
+                     progress: Progress | None = None,
+                     devices: Devices | None = None) -> list[dict]:
+    """Evaluate every member on `test_set` with one compiled `predict` per bucket (the
+    windows of each batch split over `devices`)."""
     progress = progress or Progress()
     predict = make_predict(config, num_samples=num_samples, with_graph=False)
     results = []
@@ -92,7 +104,7 @@ def evaluate_members(stacked_params, config: ModelConfig, test_set: data.WindowS
         result = evaluate_params(
             unstack(stacked_params, index), jax.random.key(0), test_set, config,
             num_samples=num_samples, with_kde=False, predict=predict, controls=controls,
-            fully_detected_only=member.fully_detected_only)
+            fully_detected_only=member.fully_detected_only, devices=devices)
         progress.line(f"{member.name}: AOE {result['aoe']:.3f} FOE {result['foe']:.3f} "
                       f"({index + 1}/{len(members)} evaluated)")
         results.append(result)

@@ -1,0 +1,41 @@
+"""Write a model's sampled futures to a TrajNet++ file:
+`python -m gst_jax.predict MODEL --data PATH --out predictions.ndjson`.
+
+MODEL is a work directory (or one of its checkpoints), SWEEP_DIR:MEMBER or pretrained:NAME.
+Every window of the split gets a scene row, its observed tracks and K sampled futures of every
+predicted pedestrian (rows with prediction_number and scene_id), in metres and the data's own
+frame ids. `python -m gst_jax.evaluate --predictions FILE --data PATH` scores such a file; with
+the same seed it scores exactly as `python -m gst_jax.evaluate MODEL` does.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from gst_jax import cli
+from gst_jax.evaluation import write_run_predictions
+from gst_jax.progress import Progress
+from gst_jax.runs import load_model
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.parser("gst_jax.predict", __doc__)
+    parser.add_argument("model", help="a work directory of `python -m gst_jax.train` (or one of "
+                        "its checkpoints/<epoch>), SWEEP_DIR:MEMBER, or pretrained:NAME")
+    cli.add_data_flags(parser, of_run=True)
+    cli.add_sampling_flags(parser)
+    parser.add_argument("--out", required=True, help="the prediction file to write (ndjson)")
+    cli.run(predict, parser, argv)
+
+
+def predict(args) -> None:
+    run = load_model(args.model, args.epoch)
+    data_config = cli.data_config(args, base=run.data_config)
+    rows = write_run_predictions(run, data_config, args.split, Path(args.out),
+                                 num_samples=args.samples, seed=args.seed, progress=Progress())
+    cli.say(f"written: {args.out} ({rows} rows: {data_config.scene}, {args.split} split, "
+            f"{args.samples} samples of {run.name})")
+
+
+if __name__ == "__main__":
+    main()
