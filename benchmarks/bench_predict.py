@@ -75,8 +75,7 @@ def main() -> None:
             batches = list(data.evaluation_batches(window_set))
 
             def whole_test_set():
-                return [predict(params, jax.random.fold_in(key, i), b).positions
-                        for i, b in enumerate(batches)]
+                return [predict(params, key, b).positions for b in batches]
 
             seconds = best_of(whole_test_set, args.repeats)
             ours_ms = 1e3 * seconds / len(window_set)

@@ -45,6 +45,7 @@ def evaluate(args) -> None:
         result = evaluate_prediction_file(Path(args.predictions), data_config, args.split,
                                           with_kde=not args.no_kde)
     else:
+        devices = cli.devices(args)             # first: processes join before jax is used
         run = load_model(args.model, args.epoch)
         out = WorkDir(args.workdir) if args.workdir else run.workdir
         if out is not None:
@@ -52,7 +53,7 @@ def evaluate(args) -> None:
         data_config = cli.data_config(args, base=run.data_config)
         result = evaluate_run(run, data_config, args.split, num_samples=args.samples,
                               seed=args.seed, with_kde=not args.no_kde, progress=Progress(),
-                              devices=cli.devices(args))
+                              devices=devices)
     print(json.dumps(result, indent=2) if args.json else format_table(result), flush=True)
     markdown = format_markdown(result)
     if args.markdown:

@@ -123,8 +123,9 @@ def trajnet_collision_sums(pred: np.ndarray, truth: np.ndarray, primary_mask: np
 
     def meets(neighbour_paths, neighbour_valid):
         """(K, B, N) whether each primary's predicted path meets any valid neighbour's."""
-        gap = np.linalg.norm(points(pred)[..., :, None, :] - points(neighbour_paths)[..., None, :, :],
-                             axis=-1)                                   # (K, B, 2P-1, N, N)
+        # (K, B, 2P - 1, N, N): primary n against neighbour m at every point.
+        gap = np.linalg.norm(points(pred)[..., :, None, :]
+                             - points(neighbour_paths)[..., None, :, :], axis=-1)
         touching = (gap <= 2 * TRAJNET_PERSON_RADIUS) & neighbour_valid[..., None, :] & others
         return np.any(touching, axis=(-3, -1)) & primary
 

@@ -93,14 +93,14 @@ def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int, *,
     """The predictions of a TrajNet++ file for the windows of `window_set`, in the batches of
     `data.evaluation_batches`. Every fully detected pedestrian (those scored) must have all K
     samples at every future step; a `DataError` names the file, line and what was wrong."""
-    samples = _read_samples(Path(path), window_set, obs_len)
+    samples = _read_samples(Path(path), window_set)
     num_samples = 1 + max((k for (_, _, _, k) in samples), default=-1)
     if num_samples == 0:
         raise DataError(f"{path}: no predicted track (rows with a prediction_number)")
     for batch in data.evaluation_batches(window_set, edge_budget=edge_budget):
-        scene_count, steps, slots = batch.positions.shape[0], batch.positions.shape[1], batch.positions.shape[2]
-        positions = np.full((num_samples, scene_count, steps - obs_len, slots, 2), np.nan,
-                            np.float32)
+        scene_count, steps, slots = batch.positions.shape[:3]
+        pred_len = steps - obs_len
+        positions = np.full((num_samples, scene_count, pred_len, slots, 2), np.nan, np.float32)
         scored = fully_detected_mask(batch.node_mask) * batch.scene_mask[:, None]
         for b, index in enumerate(np.asarray(batch.window_index)):
             if not batch.scene_mask[b]:
@@ -108,8 +108,9 @@ def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int, *,
             window = window_set[int(index)]
             for n, pedestrian in enumerate(window.pedestrian_ids):
                 for k in range(num_samples):
-                    for t in range(steps - obs_len):
-                        xy = samples.get((int(index), int(pedestrian), _frame(window, obs_len + t), k))
+                    for t in range(pred_len):
+                        frame = _frame(window, obs_len + t)
+                        xy = samples.get((int(index), int(pedestrian), frame, k))
                         if xy is not None:
                             positions[k, b, t, n] = np.asarray(xy) - window.origin
         predicted_mask = np.all(np.isfinite(positions), axis=(0, 2, 4)).astype(np.float32)
@@ -119,12 +120,12 @@ def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int, *,
             window = window_set[int(batch.window_index[b])]
             raise DataError(f"{path}: pedestrian {int(window.pedestrian_ids[n])} of scene "
                             f"{int(batch.window_index[b])} is scored (fully detected) but lacks "
-                            f"some of its {num_samples} x {steps - obs_len} predicted positions")
+                            f"some of its {num_samples} x {pred_len} predicted positions")
         yield PredictedBatch(batch, positions, predicted_mask)
 
 
-def _read_samples(path: Path, window_set: data.WindowSet,
-                  obs_len: int) -> dict[tuple[int, int, int, int], tuple[float, float]]:
+def _read_samples(path: Path, window_set: data.WindowSet
+                  ) -> dict[tuple[int, int, int, int], tuple[float, float]]:
     """(scene, pedestrian, frame, sample) -> (x, y) of every predicted row; checks each row."""
     samples = {}
     try:

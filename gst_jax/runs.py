@@ -211,7 +211,12 @@ class WorkDir:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        self.writes = jax.process_index() == 0
+
+    @property
+    def writes(self) -> bool:
+        """Whether this process writes the files written once (asked when writing: jax's
+        processes must be joined before jax is first used)."""
+        return jax.process_index() == 0
 
     def __repr__(self) -> str:
         return f"WorkDir({str(self.path)!r})"
@@ -304,11 +309,12 @@ class WorkDir:
 
     def write_evaluation(self, data_config: DataConfig, split: str, epoch: int, result: dict,
                          markdown: str) -> Path:
-        """Write an evaluation's JSON and markdown; returns the JSON path."""
+        """Write an evaluation's JSON and markdown (process 0); returns the JSON path."""
         path = self.evaluation_path(data_config, split, epoch)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(result, indent=2) + "\n")
-        path.with_suffix(".md").write_text(markdown)
+        if self.writes:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(result, indent=2) + "\n")
+            path.with_suffix(".md").write_text(markdown)
         return path
 
     def results_path(self, suffix: str) -> Path:

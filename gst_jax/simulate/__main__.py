@@ -24,7 +24,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("runs", nargs="*", help="work directories of trained models, or "
                         "SWEEP_DIR:MEMBER for one member of a sweep (e.g. "
                         "runs/sweep-hotel-e10:n4-partial-seed1000), or pretrained:NAME for a "
-                        "shipped model (e.g. pretrained:eth); none = only the "
+                        "shipped model (e.g. pretrained:eth_d); none = only the "
                         "constant-velocity model")
     parser.add_argument("--scenario", default="all", choices=("all", *SCENARIOS),
                         help="a: late crossing, b: boundary wanderers, c: intersection, "
