@@ -194,8 +194,9 @@ def add_device_flags(parser: argparse.ArgumentParser) -> None:
     """--devices, and --coordinator / --num-processes / --process-id for several machines."""
     group = parser.add_argument_group("devices (see the README's 'Scaling out')")
     group.add_argument("--devices", type=positive_int, default=None,
-                       help="use the first N local devices (default: all of them; with "
-                            "several processes, every device of every process)")
+                       help="use the first N local devices (default: all of them, for a "
+                            "sweep the most that split its members evenly; with several "
+                            "processes, every device of every process)")
     group.add_argument("--coordinator", default=None, metavar="HOST:PORT",
                        help="join several processes with jax.distributed: the address of "
                             "process 0; 'auto' reads the cluster's environment (Slurm, ...)")
@@ -205,12 +206,16 @@ def add_device_flags(parser: argparse.ArgumentParser) -> None:
                        help="with --coordinator HOST:PORT: this process's rank, 0 to N-1")
 
 
-def devices(args: argparse.Namespace) -> Devices | None:
-    """The devices the flags name; None for one device (the single-device program)."""
+def devices(args: argparse.Namespace, *, members: int | None = None) -> Devices | None:
+    """The devices the flags name; None for one device (the single-device program). For a
+    sweep of `members`, by default the most devices that split them evenly."""
     if args.coordinator is not None:
         auto = args.coordinator == "auto"
         join_processes(None if auto else args.coordinator, args.num_processes, args.process_id)
-    chosen = parallel_devices(args.devices)
+    count = args.devices
+    if count is None and members is not None and jax.process_count() == 1:
+        count = math.gcd(members, jax.local_device_count())
+    chosen = parallel_devices(count)
     return chosen if chosen.count > 1 else None
 
 

@@ -44,7 +44,7 @@ def sweep(args) -> None:
     cli.say(f"work directory: {workdir}; {len(members)} members, head slots {config.head_slots}")
     results = fit_sweep(config, data_config, train_config, members, workdir,
                         eval_samples=args.eval_samples, max_eval_windows=args.max_eval_windows,
-                        devices=cli.devices(args))
+                        devices=cli.devices(args, members=len(members)))
     if args.json:
         print(json.dumps(results, indent=2))
     else:
