@@ -67,10 +67,6 @@ class Devices:
             return jax.tree.map(np.asarray, tree)
         return multihost_utils.process_allgather(tree, tiled=True)
 
-    def round_up(self, size: int) -> int:
-        """The smallest multiple of `count` at least `size`: a batch that splits evenly."""
-        return -(-size // self.count) * self.count
-
 
 def devices(count: int | None = None) -> Devices:
     """A mesh over every device of every process (the default), or the first `count` of
@@ -79,10 +75,10 @@ def devices(count: int | None = None) -> Devices:
     if count is not None:
         if not 1 <= count <= len(available):
             raise DeviceError(f"--devices {count}: this machine has {len(available)} "
-                             f"{available[0].platform.upper()} device(s)")
+                              f"{available[0].platform.upper()} device(s)")
         if jax.process_count() > 1 and count != len(available):
             raise DeviceError("--devices limits one process; with several processes every "
-                             "device of every process is used")
+                              "device of every process is used")
         available = available[:count]
     return Devices(Mesh(np.array(available), (DATA,)))
 
@@ -95,8 +91,3 @@ def join_processes(coordinator: str | None = None, num_processes: int | None = N
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
                                process_id=process_id)
-
-
-def is_main_process() -> bool:
-    """Process 0 writes what is written once (metrics, summaries, figures)."""
-    return jax.process_index() == 0
