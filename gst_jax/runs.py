@@ -72,7 +72,7 @@ class Checkpointer:
 
     def save(self, epoch: int, state: Any, config: dict, records: list) -> None:
         if not all(bool(np.all(np.isfinite(leaf))) for leaf in jax.tree.leaves(state)
-                   if np.issubdtype(np.asarray(leaf).dtype, np.floating)):
+                   if np.issubdtype(leaf.dtype, np.floating)):
             raise RunError(f"refusing to save a non-finite training state (epoch {epoch})")
         self._manager.save(epoch, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),

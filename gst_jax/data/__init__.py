@@ -11,7 +11,8 @@ from gst_jax.data.windows import Window, WindowSet
 
 __all__ = [
     "BUCKETS", "DataError", "PackedStep", "SHARED_MICRO_BATCH_MAX", "SceneBatch",
-    "TRAINING_BUCKETS", "Tracks", "Window", "WindowSet", "bucket_size", "data_files", "data_name", "default_data_dir", "evaluation_batches", "has_validation",
-    "load_split", "make_batch", "node_mask_from_positions", "pack_step", "pad_windows",
-    "read_tracks", "training_batches",
+    "TRAINING_BUCKETS", "Tracks", "Window", "WindowSet", "bucket_size", "data_files",
+    "data_name", "default_data_dir", "evaluation_batches", "has_validation", "load_split",
+    "make_batch", "node_mask_from_positions", "pack_step", "pad_windows", "read_tracks",
+    "training_batches",
 ]

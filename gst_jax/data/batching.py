@@ -100,7 +100,7 @@ def pack_step(windows: Sequence[Window], window_index: Sequence[int],
     micro_batches = []
     if small:
         size = bucket_size(max(windows[k].num_pedestrians for k in small), TRAINING_BUCKETS)
-        slots = -(-max(shared_slots, len(small)) // slots_multiple) * slots_multiple
+        slots = _round_up(max(shared_slots, len(small)), slots_multiple)
         micro_batches.append(pad_windows([windows[k] for k in small], size, slots,
                                          [window_index[k] for k in small]))
     if slots_multiple > 1:              # similar sizes share a group: less padding
@@ -111,6 +111,11 @@ def pack_step(windows: Sequence[Window], window_index: Sequence[int],
         micro_batches.append(pad_windows([windows[k] for k in group], size, slots_multiple,
                                          [window_index[k] for k in group]))
     return PackedStep(tuple(micro_batches), len(windows))
+
+
+def _round_up(size: int, multiple: int) -> int:
+    """The smallest multiple of `multiple` that is at least `size`."""
+    return -(-size // multiple) * multiple
 
 
 def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
@@ -127,7 +132,7 @@ def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
         by_bucket.setdefault(bucket_size(window.num_pedestrians, buckets), []).append(index)
     for size in sorted(by_bucket):
         indices = by_bucket[size]
-        batch_size = -(-max(1, edge_budget // size ** 2) // batch_multiple) * batch_multiple
+        batch_size = _round_up(max(1, edge_budget // size ** 2), batch_multiple)
         for start in range(0, len(indices), batch_size):
             chosen = indices[start:start + batch_size]
             yield pad_windows([window_set[i] for i in chosen], size, batch_size, chosen)

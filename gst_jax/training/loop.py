@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from functools import partial
 import time
+from functools import partial
 from typing import Any, Callable
 
 import jax
