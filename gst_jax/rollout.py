@@ -222,10 +222,17 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
     zeros = jnp.zeros((num_nodes, config.lstm_hidden), encoded.dtype)
     (hidden, cell), _ = jax.lax.scan(observe, (zeros, zeros), (encoded, node_mask))
 
-    # --- Prediction: the first displacement comes straight from the observed state.
-    hidden, cell = hidden * keep[..., None], cell * keep[..., None]
+    # --- Prediction, on the first P slots, where the pedestrians to predict sit
+    # (SceneBatch.predicted_slots); coordinate-hashed noise makes their draws those of all N.
+    slots = num_nodes if window.predicted_slots is None else window.predicted_slots.shape[-1]
+    keep = keep[:slots]
+    hidden, cell = hidden[:slots] * keep[..., None], cell[:slots] * keep[..., None]
+    normal = normal[:, :slots]
+    gumbel_pred = None if recorded is None else _first_slots(recorded.gumbel_pred, slots)
+    # The first displacement comes straight from the observed state.
     mu, sigma, corr = apply(GST.readout, hidden)
     delta = draw(mu, sigma, corr, normal[0], keep)
+    noise_shape = (slots, config.head_slots, slots + 1)
 
     def predict_step(carry: PredictionCarry, recorded_step):
         key, gumbel_key, dropout_key = jax.random.split(carry.key, 3)
@@ -250,23 +257,43 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
     # (N, L, 128) per step, costs more memory traffic than recomputing them (eth training
     # step 9.0 -> 7.8 s per epoch on the 2-core CPU; benchmarks/README.md).
     predict_step = jax.checkpoint(predict_step)
-    step_noise = (None if recorded is None else recorded.gumbel_pred, normal[1:])
-    carry = PredictionCarry(hidden, cell, delta, edge_features[-1], keys.steps)
+    carry = PredictionCarry(hidden, cell, delta, edge_features[-1, :slots, :slots], keys.steps)
     _, (deltas, mus, sigmas, corrs, probs, sampled, attention) = jax.lax.scan(
-        predict_step, carry, step_noise, length=pred_len - 1)
+        predict_step, carry, (gumbel_pred, normal[1:]), length=pred_len - 1)
 
-    def with_first(first, rest):  # (N, ...) and (P-1, N, ...) -> (P, N, ...)
-        return jnp.concatenate([first[None], rest], axis=0)
+    def all_slots(first, rest, fill=0.0):  # (P, ...), (P-1, P, ...) -> (P, N, ...)
+        steps = jnp.concatenate([first[None], rest], axis=0)
+        pad = [(0, 0), (0, num_nodes - slots)] + [(0, 0)] * (steps.ndim - 2)
+        return jnp.pad(steps, pad, constant_values=fill)
 
     return RolloutOutput(
-        displacements=with_first(delta, deltas),
-        mu=with_first(mu, mus),
-        sigma=with_first(sigma, sigmas),
-        corr=with_first(corr, corrs),
-        edge_probs=jnp.concatenate([obs_probs, probs]),              # (S, N, G, L)
-        sampled_edges=jnp.concatenate([obs_sampled, sampled]),
-        predicted_mask=keep,
+        displacements=all_slots(delta, deltas),
+        mu=all_slots(mu, mus),
+        sigma=all_slots(sigma, sigmas, fill=1.0),      # a finite NLL, masked by the losses
+        corr=all_slots(corr, corrs),
+        edge_probs=jnp.concatenate([obs_probs, _all_neighbours(probs, num_nodes, axis=1)]),
+        sampled_edges=jnp.concatenate([obs_sampled, _all_neighbours(sampled, num_nodes, axis=1)]),
+        predicted_mask=jnp.pad(keep, (0, num_nodes - slots)),
         # (layers, T_obs, heads, N, L) and (P-1, layers, heads, N, L) -> (layers, S, ...)
-        attention=(jnp.concatenate([obs_attention, jnp.moveaxis(attention, 0, 1)], axis=1)
-                   if return_attention else None),
+        attention=(jnp.concatenate([obs_attention, jnp.moveaxis(
+            _all_neighbours(attention, num_nodes, axis=3), 0, 1)], axis=1)
+            if return_attention else None),
     )
+
+
+def _first_slots(edge_noise: jax.Array, slots: int) -> jax.Array:
+    """(..., N, G, N+1) noise of all slots -> (..., P, G, P+1): the first P targets and
+    neighbours, and the ghost."""
+    targets = edge_noise[..., :slots, :, :]
+    return jnp.concatenate([targets[..., :slots], targets[..., -1:]], axis=-1)
+
+
+def _all_neighbours(per_edge: jax.Array, num_nodes: int, axis: int) -> jax.Array:
+    """(..., P, ..., P+1) with targets at `axis` and neighbours (ghost last) on the last axis
+    -> (..., N, ..., N+1), zero for the slots beyond P."""
+    slots = per_edge.shape[axis]
+    pad = [(0, 0)] * per_edge.ndim
+    pad[axis] = (0, num_nodes - slots)
+    per_edge = jnp.pad(per_edge, pad)
+    return jnp.concatenate([per_edge[..., :slots], jnp.zeros(
+        per_edge.shape[:-1] + (num_nodes - slots,), per_edge.dtype), per_edge[..., -1:]], axis=-1)

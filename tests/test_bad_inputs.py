@@ -59,7 +59,7 @@ def test_a_row_off_the_frame_grid_is_refused_with_its_line(tmp_path):
     with pytest.warns(UserWarning, match=r"dropped 1 row\(s\) off the grid of every 10 frames"):
         tracks = data.read_tracks(path, drop_off_grid=True)
     assert tracks.frame_step == 10 and 123 not in tracks.frames
-    assert sum(w is not None for w in data.windows.cut_windows(tracks, 20)) == 11
+    assert sum(w is not None for w in data.windows.cut_windows(tracks, 20, 8)) == 11
 
 
 def test_a_pedestrian_sampled_on_another_phase_is_refused(tmp_path):
@@ -101,7 +101,7 @@ def test_bytes_that_are_not_utf8_are_refused_with_their_line(tmp_path, name, con
 def test_utm_like_coordinates_keep_their_millimetres(tmp_path):
     origin = (4.5e6 + 123.4567, 5.3e6 + 0.0011)
     path = _write(tmp_path / "utm.txt", _walkers(range(0, 200, 10), origin=origin))
-    windows = [w for w in data.windows.cut_windows(data.read_tracks(path), 20) if w]
+    windows = [w for w in data.windows.cut_windows(data.read_tracks(path), 20, 8) if w]
     window = windows[0]
     assert np.all(np.abs(window.positions) < 1e3)                      # relative to its origin
     absolute = window.positions[:, 0].astype(np.float64) + window.origin

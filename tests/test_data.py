@@ -95,7 +95,7 @@ def test_hand_built_windows(tmp_path):
     rows += [(0, 2, 0.0, 1.0), (10, 2, 0.0, 2.0), (30, 2, 0.0, 4.0)]
     rows += [(20, 3, 5.0, 5.0), (30, 3, 5.0, 6.0)]
     path = _write(tmp_path, "".join(f"{f} {p} {x} {y}\n" for f, p, x, y in rows))
-    windows = cut_windows(data.read_tracks(path), seq_len=3)
+    windows = cut_windows(data.read_tracks(path), seq_len=3, obs_len=2)
     # 5 frames -> num_windows = 3, the release enumerates starts 0..3; start 3 is too short.
     assert len(windows) == 4 and windows[3] is None
     first = windows[0]
@@ -111,10 +111,28 @@ def test_hand_built_windows(tmp_path):
     np.testing.assert_array_equal(data.node_mask_from_positions(second.position_mask)[:, 1], [1, 0, 0])
 
 
+def test_windows_list_predicted_then_observed_then_unobserved_pedestrians(tmp_path):
+    # Ids 1..4 over frames 0..30, observing the first two steps: 1 arrives after the
+    # observation, 2 is seen at step 0 only, 3 and 4 are predicted (only 4 fully detected).
+    rows = [(20, 1, 0.0, 0.0), (30, 1, 0.0, 1.0), (0, 2, 1.0, 0.0)]
+    rows += [(f, 3, 2.0, f / 10) for f in range(0, 30, 10)]
+    rows += [(f, 4, 3.0, f / 10) for f in range(0, 40, 10)]
+    path = _write(tmp_path, "".join(f"{f} {p} {x} {y}\n" for f, p, x, y in rows))
+    window = cut_windows(data.read_tracks(path), seq_len=4, obs_len=2)[0]
+    np.testing.assert_array_equal(window.pedestrian_ids, [3, 4, 2, 1])
+    assert (window.num_predicted, window.num_observed, window.num_pedestrians) == (2, 3, 4)
+    np.testing.assert_allclose(window.positions[:, 0], [[2, 0], [2, 1], [2, 2], [0, 0]])
+    batch = data.pad_windows([window], 8, predicted_slots=2, observed_only=True)
+    assert batch.position_mask[0, :, :3].any(axis=0).all() and not batch.position_mask[0, :, 3:].any()
+    np.testing.assert_array_equal(batch.predicted_slots, [[1, 1]])
+    with pytest.raises(ValueError, match="does not fit"):
+        data.pad_windows([window], 8, predicted_slots=1)
+
+
 def test_window_without_fully_detected_pedestrian_is_dropped(tmp_path):
     rows = [(0, 1, 0, 0), (10, 1, 1, 0), (10, 2, 0, 1), (20, 2, 1, 1)]
     path = _write(tmp_path, "".join(f"{f} {p} {x} {y}\n" for f, p, x, y in rows))
-    assert cut_windows(data.read_tracks(path), seq_len=3) == [None, None]
+    assert cut_windows(data.read_tracks(path), seq_len=3, obs_len=2) == [None, None]
 
 
 # --- protocols -------------------------------------------------------------------------------
@@ -218,16 +236,23 @@ def test_training_steps_are_seeded_size_packed_and_cover_every_window():
         assert len(_step_windows(step)) == step.num_scenes
         for batch in step.micro_batches:
             b, _, n = batch.shape
-            shapes.add((b, n))
-            sizes = [windows[i].num_pedestrians for i in batch.window_index if i >= 0]
+            p = batch.predicted_slots.shape[1]
+            shapes.add((b, n, p))
+            chosen = [windows[i] for i in batch.window_index if i >= 0]
+            observed = max(w.num_observed for w in chosen)
+            predicted = max(w.num_predicted for w in chosen)
+            # Padded to the bucket of the pedestrians seen while observing, the prediction to
+            # that of the predicted ones, who sit first.
+            assert n == data.bucket_size(observed, data.TRAINING_BUCKETS)
+            assert p == min(data.bucket_size(predicted, data.TRAINING_BUCKETS), n)
+            np.testing.assert_array_equal(batch.predicted_slots, batch.node_mask[:, 7, :p])
+            assert not batch.node_mask[:, 7, p:].any()
             if b == 1:              # a large window, alone, in its own bucket
-                assert sizes[0] > data.SHARED_MICRO_BATCH_MAX
-                assert n == data.bucket_size(sizes[0], data.TRAINING_BUCKETS)
+                assert observed > data.SHARED_MICRO_BATCH_MAX
             else:                   # the small windows together, padded to the largest
-                assert b == 16 and max(sizes) <= data.SHARED_MICRO_BATCH_MAX
-                assert n == data.bucket_size(max(sizes), data.TRAINING_BUCKETS)
-    assert any(b == 1 for b, _ in shapes) and any(b == 16 for b, _ in shapes)
-    assert len(shapes) <= len(data.TRAINING_BUCKETS)         # a small, fixed set of programs
+                assert b == 16 and observed <= data.SHARED_MICRO_BATCH_MAX
+    assert any(b == 1 for b, _, _ in shapes) and any(b == 16 for b, _, _ in shapes)
+    assert len(shapes) <= len(data.TRAINING_BUCKETS) ** 2 / 2    # a small, fixed set of programs
     again = list(data.training_batches(windows, batch_size=16, seed=3, epoch=1))
     other = list(data.training_batches(windows, batch_size=16, seed=3, epoch=2))
     assert [_step_windows(s) for s in steps] == [_step_windows(s) for s in again]
@@ -245,6 +270,7 @@ def test_evaluation_batches_respect_the_edge_budget():
         assert n in data.BUCKETS and (b * n * n <= budget or b == 1)
         for i in batch.window_index[batch.window_index >= 0]:
             assert data.bucket_size(windows[i].num_pedestrians) == n
+            assert windows[i].num_predicted <= batch.predicted_slots.shape[1] <= n
     assert len({b.shape[2] for b in batches}) > 1
 
 

@@ -21,6 +21,10 @@ class SceneBatch(NamedTuple):
         t > 0 the product of the position masks at t - 1 and t (a displacement exists).
       scene_mask: (B,) float32, 1 for real windows, 0 for padding windows.
       window_index: (B,) int32, index of each window in its dataset split (-1 for padding).
+      predicted_slots: (B, P) float32 or None. The pedestrians that will be predicted
+        (docs/MODEL.md 2.3: valid at the last observed step) sit in the first P slots, as
+        windows order them, so the prediction steps compute on P of the N slots; this is
+        their keep mask there, its width P a bucket size. None: any slot may be predicted.
     """
 
     positions: np.ndarray
@@ -28,6 +32,7 @@ class SceneBatch(NamedTuple):
     node_mask: np.ndarray
     scene_mask: np.ndarray
     window_index: np.ndarray
+    predicted_slots: np.ndarray | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:

@@ -48,25 +48,35 @@ def bucket_size(num_pedestrians: int, buckets: Sequence[int] = BUCKETS) -> int:
 
 
 def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int | None = None,
-                window_index: Sequence[int] | None = None) -> SceneBatch:
+                window_index: Sequence[int] | None = None, *, predicted_slots: int | None = None,
+                observed_only: bool = False) -> SceneBatch:
     """Stack windows into a SceneBatch of N = num_pedestrians slots and B = batch_size scenes.
 
     Missing scenes (when batch_size > len(windows)) are all-zero with scene_mask 0.
+    predicted_slots: P, the slots the prediction steps compute on (at least every window's
+    `num_predicted`); None: all N. observed_only: leave out each window's pedestrians that
+    are seen only after the observation (training: they add nothing to the loss).
     """
     batch_size = batch_size or len(windows)
     seq_len = windows[0].position_mask.shape[0] if windows else 1
     positions = np.zeros((batch_size, seq_len, num_pedestrians, 2), np.float32)
     position_mask = np.zeros((batch_size, seq_len, num_pedestrians), np.float32)
     for b, window in enumerate(windows):
-        n = window.num_pedestrians
-        positions[b, :, :n] = window.positions
-        position_mask[b, :, :n] = window.position_mask
+        n = window.num_observed if observed_only else window.num_pedestrians
+        if n > num_pedestrians or (predicted_slots or n) < window.num_predicted:
+            raise ValueError(f"a window of {n} pedestrians ({window.num_predicted} predicted) "
+                             f"does not fit {num_pedestrians} slots ({predicted_slots} predicted)")
+        positions[b, :, :n] = window.positions[:, :n]
+        position_mask[b, :, :n] = window.position_mask[:, :n]
     scene_mask = (np.arange(batch_size) < len(windows)).astype(np.float32)
     index = np.full(batch_size, -1, np.int32)
     index[:len(windows)] = window_index if window_index is not None else np.arange(len(windows))
-    return SceneBatch(positions=positions, position_mask=position_mask,
-                      node_mask=node_mask_from_positions(position_mask), scene_mask=scene_mask,
-                      window_index=index)
+    node_mask = node_mask_from_positions(position_mask)
+    keep = None
+    if predicted_slots is not None and windows:
+        keep = node_mask[:, windows[0].obs_len - 1, :predicted_slots]
+    return SceneBatch(positions=positions, position_mask=position_mask, node_mask=node_mask,
+                      scene_mask=scene_mask, window_index=index, predicted_slots=keep)
 
 
 def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int = 0,
@@ -86,30 +96,37 @@ def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int =
 
 def pack_step(windows: Sequence[Window], window_index: Sequence[int],
               shared_slots: int = 16, slots_multiple: int = 1) -> PackedStep:
-    """A step's windows in micro-batches: those of up to SHARED_MICRO_BATCH_MAX pedestrians
-    together in one batch of `shared_slots` scenes padded to the largest of them, each
-    larger window alone, padded to its TRAINING_BUCKETS size. The programs of an epoch are
-    thus one per (bucket, 1) and per small bucket: a fixed, small set.
+    """A step's windows in micro-batches: those of up to SHARED_MICRO_BATCH_MAX observed
+    pedestrians together in one batch of `shared_slots` scenes padded to the largest of them,
+    each larger window alone, padded to its TRAINING_BUCKETS size. The programs of an epoch
+    are thus one per (bucket, predicted bucket, 1) and per small bucket: a fixed, small set.
+
+    Pedestrians seen only after the observation are left out (they add nothing to the loss),
+    and the prediction steps compute on the slots of the predicted pedestrians only
+    (`SceneBatch.predicted_slots`): a large window costs ~N^3, so this is most of the work.
 
     slots_multiple > 1 (scenes split over that many devices): every micro-batch holds a
     multiple of it; the larger windows go in groups of that many, by size, each group
     padded to the bucket of its largest.
     """
-    small = [k for k, w in enumerate(windows) if w.num_pedestrians <= SHARED_MICRO_BATCH_MAX]
-    large = [k for k, w in enumerate(windows) if w.num_pedestrians > SHARED_MICRO_BATCH_MAX]
+    small = [k for k, w in enumerate(windows) if w.num_observed <= SHARED_MICRO_BATCH_MAX]
+    large = [k for k, w in enumerate(windows) if w.num_observed > SHARED_MICRO_BATCH_MAX]
+
+    def padded(group: list[int], slots: int) -> SceneBatch:
+        chosen = [windows[k] for k in group]
+        size = bucket_size(max(w.num_observed for w in chosen), TRAINING_BUCKETS)
+        predicted = bucket_size(max(w.num_predicted for w in chosen), TRAINING_BUCKETS)
+        return pad_windows(chosen, size, slots, [window_index[k] for k in group],
+                           predicted_slots=min(predicted, size), observed_only=True)
+
     micro_batches = []
     if small:
-        size = bucket_size(max(windows[k].num_pedestrians for k in small), TRAINING_BUCKETS)
-        slots = _round_up(max(shared_slots, len(small)), slots_multiple)
-        micro_batches.append(pad_windows([windows[k] for k in small], size, slots,
-                                         [window_index[k] for k in small]))
+        micro_batches.append(padded(small, _round_up(max(shared_slots, len(small)),
+                                                     slots_multiple)))
     if slots_multiple > 1:              # similar sizes share a group: less padding
-        large.sort(key=lambda k: windows[k].num_pedestrians)
+        large.sort(key=lambda k: windows[k].num_observed)
     for start in range(0, len(large), slots_multiple):
-        group = large[start:start + slots_multiple]
-        size = bucket_size(max(windows[k].num_pedestrians for k in group), TRAINING_BUCKETS)
-        micro_batches.append(pad_windows([windows[k] for k in group], size, slots_multiple,
-                                         [window_index[k] for k in group]))
+        micro_batches.append(padded(large[start:start + slots_multiple], slots_multiple))
     return PackedStep(tuple(micro_batches), len(windows))
 
 
@@ -121,21 +138,25 @@ def _round_up(size: int, multiple: int) -> int:
 def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
                        buckets: Sequence[int] = BUCKETS,
                        batch_multiple: int = 1) -> Iterator[SceneBatch]:
-    """Every window once, grouped by bucket, B = max(1, edge_budget // N^2) scenes per batch
+    """Every window once, grouped by bucket (and the bucket of its predicted pedestrians,
+    `SceneBatch.predicted_slots`), B = max(1, edge_budget // N^2) scenes per batch
     (rounded up to a multiple of `batch_multiple`: the devices the batch is split over).
 
     A 90-pedestrian window never shares a padded size with an 8-pedestrian one, and B N^2
     stays within the budget; `window_index` maps each scene back to `window_set`.
     """
-    by_bucket: dict[int, list[int]] = {}
+    by_bucket: dict[tuple[int, int], list[int]] = {}
     for index, window in enumerate(window_set.windows):
-        by_bucket.setdefault(bucket_size(window.num_pedestrians, buckets), []).append(index)
-    for size in sorted(by_bucket):
-        indices = by_bucket[size]
+        size = bucket_size(window.num_pedestrians, buckets)
+        predicted = min(bucket_size(window.num_predicted, buckets), size)
+        by_bucket.setdefault((size, predicted), []).append(index)
+    for size, predicted in sorted(by_bucket):
+        indices = by_bucket[size, predicted]
         batch_size = _round_up(max(1, edge_budget // size ** 2), batch_multiple)
         for start in range(0, len(indices), batch_size):
             chosen = indices[start:start + batch_size]
-            yield pad_windows([window_set[i] for i in chosen], size, batch_size, chosen)
+            yield pad_windows([window_set[i] for i in chosen], size, batch_size, chosen,
+                              predicted_slots=predicted)
 
 
 # Positions are float32 inside the model: up to 10 km from the origin they keep millimetres.

@@ -110,7 +110,7 @@ def _cut(path: Path, config: DataConfig) -> tuple[Window | None, ...]:
     tracks = read_tracks(path, drop_off_grid=config.drop_off_grid)
     if config.data:                       # bundled scenes are used as released (0.4 s apart)
         tracks = to_model_rate(tracks, config.fps, MODEL_HZ, config.scale)
-    return tuple(cut_windows(tracks, config.seq_len))
+    return tuple(cut_windows(tracks, config.seq_len, config.obs_len))
 
 
 def _temporal_split(windows: tuple[Window | None, ...], config: DataConfig,

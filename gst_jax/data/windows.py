@@ -7,6 +7,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from gst_jax.data.batch import node_mask_from_positions
 from gst_jax.data.readers import Tracks
 
 
@@ -14,14 +15,21 @@ from gst_jax.data.readers import Tracks
 class Window:
     """One scene window: T steps of the N_w pedestrians seen in it.
 
+    Its pedestrians come in three groups, each in id order: first the `num_predicted` the
+    model predicts (valid at the last observed step, docs/MODEL.md 2.3), then those valid at
+    some earlier observed step only, then those seen only after the observation, which the
+    model never sees. So the prediction steps compute on the first slots only, and training
+    leaves the last group out (`gst_jax.data.pack_step`).
+
     Attributes:
       positions: (T, N_w, 2) float32 metres relative to `origin`, zero where the pedestrian
         was not detected.
       position_mask: (T, N_w) float32, 1 where the position exists.
-      pedestrian_ids: (N_w,) int64, sorted.
+      pedestrian_ids: (N_w,) int64, in the order above.
       source: the file the window was cut from.
       start_frame: frame id of step 0; step t is frame start_frame + t * frame_step.
       frame_step: frame-id difference of one step.
+      obs_len: observed steps (the first obs_len of the T).
       origin: (2,) float64 metres subtracted from the file's coordinates before the float32
         cast: the nearest whole kilometre of the window's mean position, so that positions
         of UTM-like data (near 1e6-1e9 m) keep their millimetres; 0 for local coordinates.
@@ -33,6 +41,7 @@ class Window:
     source: str
     start_frame: int
     frame_step: int
+    obs_len: int
     origin: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(2))
 
     @property
@@ -43,6 +52,16 @@ class Window:
     def frame_range(self) -> tuple[int, int]:
         """(first, last) frame id covered by the window's time grid."""
         return self.start_frame, self.start_frame + (self.position_mask.shape[0] - 1) * self.frame_step
+
+    @property
+    def num_observed(self) -> int:
+        """Pedestrians valid at some observed step (the first slots)."""
+        return int(node_mask_from_positions(self.position_mask)[:self.obs_len].any(axis=0).sum())
+
+    @property
+    def num_predicted(self) -> int:
+        """Pedestrians the model predicts: valid at the last observed step (the first slots)."""
+        return int(node_mask_from_positions(self.position_mask)[self.obs_len - 1].sum())
 
     def fully_detected(self) -> np.ndarray:
         """(N_w,) bool: detected at every step (docs/MODEL.md 1.8)."""
@@ -81,8 +100,9 @@ class WindowSet:
                 "fully_detected": int(sum(w.fully_detected().sum() for w in self.windows))}
 
 
-def cut_windows(tracks: Tracks, seq_len: int) -> list[Window | None]:
-    """Every window start of a file, as the release enumerates them.
+def cut_windows(tracks: Tracks, seq_len: int, obs_len: int) -> list[Window | None]:
+    """Every window start of a file, as the release enumerates them (obs_len of the seq_len
+    steps observed).
 
     Start index i runs over range(num_windows + 1) with num_windows = len(frames) - seq_len + 1
     (the release's off-by-one; the last start has too few frames and is never kept). Entry i
@@ -95,12 +115,12 @@ def cut_windows(tracks: Tracks, seq_len: int) -> list[Window | None]:
     for start in range(max(num_windows + 1, 0)):
         rows = (frame_index >= start) & (frame_index < start + seq_len)
         windows.append(_window_from_rows(tracks, rows, int(frames[start]) if start < len(frames)
-                                         else 0, seq_len))
+                                         else 0, seq_len, obs_len))
     return windows
 
 
 def _window_from_rows(tracks: Tracks, rows: np.ndarray, start_frame: int,
-                      seq_len: int) -> Window | None:
+                      seq_len: int, obs_len: int) -> Window | None:
     if not rows.any():
         return None
     pedestrian_ids, slot = np.unique(tracks.pedestrians[rows], return_inverse=True)
@@ -115,8 +135,12 @@ def _window_from_rows(tracks: Tracks, rows: np.ndarray, start_frame: int,
     position_mask[step[on_grid], slot[on_grid]] = 1.0
     if not (position_mask.min(axis=0) > 0).any():
         return None
-    return Window(positions, position_mask, pedestrian_ids, tracks.path, start_frame,
-                  tracks.frame_step, origin)
+    # Predicted first, then observed only, then unobserved (see Window); stable: id order.
+    node_mask = node_mask_from_positions(position_mask)
+    group = np.where(node_mask[obs_len - 1] > 0, 0, np.where(node_mask[:obs_len].any(axis=0), 1, 2))
+    order = np.argsort(group, kind="stable")
+    return Window(positions[:, order], position_mask[:, order], pedestrian_ids[order],
+                  tracks.path, start_frame, tracks.frame_step, obs_len, origin)
 
 
 def kept(windows: Sequence[Window | None]) -> list[Window]:

@@ -28,6 +28,18 @@ def check_aoe(config: ModelConfig, params, data_config: DataConfig) -> float:
                            with_baseline=False)["aoe"]
 
 
+def recheck(name: str) -> tuple[float, float]:
+    """Re-record a shipped model's fixed-key check (after a change to how draws are made,
+    e.g. the order of a window's pedestrians); returns the old and the new AOE."""
+    from gst_jax.pretrained import load_meta, load_pretrained
+    meta = load_meta(name)
+    config, params = load_pretrained(name)
+    old = meta["check"]["aoe"]
+    meta["check"] = {**CHECK, "aoe": check_aoe(config, params, DataConfig(**meta["data"]))}
+    (ROOT / name / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+    return old, meta["check"]["aoe"]
+
+
 def export(run_path: str | Path, name: str) -> Path:
     """Copy a trained run's latest parameters and its evaluation into the package."""
     run = load_run(run_path)
