@@ -43,13 +43,18 @@ SCRIPT = textwrap.dedent("""
     # One encoder layer: the programs compile faster, the partitioning is the same.
     config, hotel = ModelConfig(encoder_layers=1), DataConfig(scene="hotel")
 
-    # One step of 6 small windows and 3 large ones (> 24 pedestrians: hotel has some).
+    # One step of 6 small hotel windows and 3 large ones (> 24 pedestrians observed: univ's
+    # smallest crowds).
     train_set = data.load_split(hotel, "train")
-    sizes = np.array([w.num_pedestrians for w in train_set.windows])
-    chosen = list(np.flatnonzero(sizes <= 16)[:6]) + list(np.flatnonzero(sizes > 24)[:3])
+    sizes = np.array([w.num_observed for w in train_set.windows])
+    large = [w for w in data.load_split(DataConfig(scene="univ"), "test").windows
+             if w.num_observed > data.SHARED_MICRO_BATCH_MAX and w.num_pedestrians <= 32][:3]
+    chosen = list(np.flatnonzero(sizes <= 16)[:6])
+    windows = [train_set[i] for i in chosen] + large
     state = create_train_state(config, jax.random.key(0))
     step = make_train_step(config, devices=devices)
-    packed = data.pack_step([train_set[i] for i in chosen], chosen, 16, step.slots_multiple)
+    packed = data.pack_step(windows, chosen + [len(train_set) + k for k in range(3)], 16,
+                            step.slots_multiple)
     loss, grads = step.loss_and_grads(step.place(state.params), step.place(step_key(0, 1, 0)),
                                       packed, step.place(hparams_for_epoch(config, TrainConfig(), 1)))
     out.update(step_loss=float(loss), step_grads=flat(grads),
