@@ -107,6 +107,9 @@ def summarize(scene: str, output: str, per_seed: list[dict], command: str,
         row[name] = float(values.mean())
         row[f"{name}_spread"] = (float(values.std()) if len(values) > 1
                                  else float(per_seed[0][f"{name}_std"]))
+    release = [(r.get("release_aoe_std"), r.get("release_foe_std")) for r in per_seed]
+    row["release_spread"] = (None if any(None in pair for pair in release)
+                             else [float(np.mean(values)) for values in zip(*release)])
     kde = [r.get("kde_nll") for r in per_seed]
     row.update(kde_nll=None if None in kde else float(np.mean(kde)),
                seeds=[r["seed"] for r in per_seed], spread_over="seeds" if len(per_seed) > 1
@@ -129,33 +132,39 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
              + "); ± is the std over seeds, or over the 20 runs for one seed. "
              + ("KDE-NLL of the 20 samples (Trajectron++ rule; the paper gives only its "
                 "average, -1.98). " if gaussian else "")
-             + "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
+             + "Release ±: the release's own spread statistic (its eval.py: per-window std "
+             "over the 20 runs, summed, per pedestrian; mean over seeds; '-' for records made "
+             "before it was computed), comparable with the paper's ± columns. "
+             "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
              "(metrics.jsonl) on the machine that trained the run, per seed."
              + (" The paper did not report this protocol: its columns are its Table I (paper "
                 "split), for orientation only, not a like-for-like comparison." if protocol != "paper"
                 else ""), "",
-             f"| scene | ours AOE | ours FOE | paper AOE | paper FOE |{kde_head} CV AOE / FOE | "
-             "seeds | train time | command |",
-             f"|---|---|---|---|---|{kde_rule}---|---|---|---|"]
+             f"| scene | ours AOE | ours FOE | release ± | paper AOE | paper FOE |{kde_head} "
+             "CV AOE / FOE | seeds | train time | command |",
+             f"|---|---|---|---|---|---|{kde_rule}---|---|---|---|"]
     for r in rows:
         paper = f"{r['paper_aoe']:.2f} | {r['paper_foe']:.2f} |"
         cv = f"{r['cv_aoe']:.2f} / {r['cv_foe']:.2f}"
         if "aoe" in r:
             minutes = ", ".join("?" if t is None else f"{t / 60:.0f}" for t in r["train_time_s"])
             kde = f" {r['kde_nll']:.2f} |" if gaussian else ""
+            release = ("-" if r["release_spread"] is None
+                       else "{:.3f} / {:.3f}".format(*r["release_spread"]))
             lines.append(
                 f"| {r['scene']} | {r['aoe']:.3f} ± {r['aoe_spread']:.3f} | "
-                f"{r['foe']:.3f} ± {r['foe_spread']:.3f} | {paper}{kde} {cv} | "
+                f"{r['foe']:.3f} ± {r['foe_spread']:.3f} | {release} | {paper}{kde} {cv} | "
                 f"{', '.join(map(str, r['seeds']))} | {minutes} min | `{r['command']}` |")
         else:
-            lines.append(f"| {r['scene']} | missing | missing | {paper}{' - |' if gaussian else ''}"
+            lines.append(f"| {r['scene']} | missing | missing | - | {paper}"
+                         f"{' - |' if gaussian else ''}"
                          f" {cv} | - | - | `{r['command']}` |")
     if len(rows) == len(ETH_UCY_SCENES):
         mean = lambda k: sum(r[k] for r in rows) / len(rows)
         finished = all("aoe" in r for r in rows)
         ours = f"{mean('aoe'):.3f} | {mean('foe'):.3f}" if finished else "- | -"
         kde = (f" {mean('kde_nll'):.2f} (paper -1.98) |" if finished else " - |") if gaussian else ""
-        lines.append(f"| AVG | {ours} | {mean('paper_aoe'):.2f} | {mean('paper_foe'):.2f} |{kde} "
+        lines.append(f"| AVG | {ours} | | {mean('paper_aoe'):.2f} | {mean('paper_foe'):.2f} |{kde} "
                      f"{mean('cv_aoe'):.2f} / {mean('cv_foe'):.2f} | | | |")
         if not finished:
             lines += ["", "No average of ours: not every scene has a finished run."]

@@ -104,6 +104,8 @@ def score(predicted: Iterable[PredictedBatch], *, obs_len: int, with_kde: bool =
             add(name, value)
         for name, value in metrics.min_ade_fde_sums(pred, truth, eval_mask).items():
             add(name, value)
+        for name, value in metrics.release_spread_sums(pred, truth, eval_mask).items():
+            add(name, value)
         if with_kde:
             for name, value in metrics.kde_nll_sums(pred, truth, eval_mask).items():
                 add("kde_" + name, value)
@@ -151,6 +153,9 @@ def _summarize(totals: dict, num_samples: int, with_kde: bool, with_baseline: bo
         "samples": num_samples,
         "aoe": float(np.mean(runs_aoe)), "aoe_std": float(np.std(runs_aoe)),
         "foe": float(np.mean(runs_foe)), "foe_std": float(np.std(runs_foe)),
+        # The release's "std" (docs/MODEL.md 4): per-window spread across runs, summed.
+        "release_aoe_std": float(totals["aoe_window_std_sum"] / max(count, 1.0)),
+        "release_foe_std": float(totals["foe_window_std_sum"] / max(count, 1.0)),
         "min_ade": float(totals["min_ade_sum"] / max(count, 1.0)),
         "min_fde": float(totals["min_fde_sum"] / max(count, 1.0)),
         "collision_rate": float(totals["pred_collisions"] / max(totals["pred_pairs"], 1.0)),

@@ -39,6 +39,23 @@ def aoe_foe_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
             "count": np.sum(mask)}
 
 
+def release_spread_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
+    """The release's "std" (its scripts/eval.py; docs/MODEL.md 4), as sums over windows: per
+    window, the standard deviation (ddof 1, torch's default) across the K runs of the
+    window's summed AOE (or FOE). Divided by the pedestrian count, it is the release's figure.
+
+    pred (K, B, P, N, 2), truth (B, P, N, 2), mask (B, N) ->
+    {"aoe_window_std_sum": (), "foe_window_std_sum": ()}.
+    """
+    errors = offset_errors(pred, truth)
+    mask = np.asarray(mask, np.float64)
+    ddof = 1 if pred.shape[0] > 1 else 0
+    per_window = {name: np.sum(np.where(mask > 0, value * mask, 0.0), axis=-1)     # (K, B)
+                  for name, value in (("aoe", errors.mean(axis=2)), ("foe", errors[:, :, -1]))}
+    return {f"{name}_window_std_sum": np.sum(np.std(value, axis=0, ddof=ddof))
+            for name, value in per_window.items()}
+
+
 def min_ade_fde_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
     """Best-of-K: per pedestrian the smallest ADE and (independently) the smallest FDE, summed."""
     errors = offset_errors(pred, truth)

@@ -29,6 +29,20 @@ def test_aoe_foe_min_ade_fde_by_hand():
     assert metrics.aoe_foe_sums(pred, truth, np.zeros((1, 1)))["count"] == 0
 
 
+def test_release_spread_is_the_per_window_std_of_summed_errors_over_pedestrians():
+    # Two windows, three runs. Window 0: one pedestrian at speeds 1, 0.5, 0 (AOE 2.5, 1.25,
+    # 0); window 1: two pedestrians, each at 1 in run 0 only (summed AOE 5, 0, 0).
+    truth = np.zeros((2, P, 2, 2))
+    first, second = straight_away([1.0, 0.5, 0.0]), straight_away([1.0, 0.0, 0.0])
+    pred = np.concatenate([np.concatenate([first, first * np.nan], axis=3),
+                           np.concatenate([second, second], axis=3)], axis=1)
+    mask = np.array([[1.0, 0.0], [1.0, 1.0]])
+    sums = metrics.release_spread_sums(pred, truth, mask)
+    # torch's std (ddof 1): std(2.5, 1.25, 0) = 1.25, std(5, 0, 0) = 5 / sqrt(3).
+    assert sums["aoe_window_std_sum"] == pytest.approx(1.25 + 5 / np.sqrt(3))
+    assert sums["foe_window_std_sum"] == pytest.approx(2.0 + 8 / np.sqrt(3))
+
+
 def test_kde_nll_matches_the_gaussian_kde_formula():
     rng = np.random.default_rng(0)
     samples = rng.normal(size=(20, 2)) * [0.3, 0.1] + [1.0, 2.0]
