@@ -18,7 +18,8 @@ def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[f
     (workdir / "metrics.jsonl").write_text("".join(
         json.dumps({"epoch": e + 1, "epoch_time_s": t}) + "\n" for e, t in enumerate(epoch_times)))
     result = {"aoe": aoe, "aoe_std": 0.01, "foe": 2 * aoe, "foe_std": 0.02, "cv_aoe": 0.5,
-              "cv_foe": 1.0, "kde_nll": -aoe, "epoch": 200, "pedestrians": 7, "protocol": "fake"}
+              "cv_foe": 1.0, "kde_nll": -aoe, "epoch": 200, "pedestrians": 7, "protocol": "fake",
+              "release_aoe_std": aoe / 2, "release_foe_std": aoe}
     (workdir / "eval" / f"{scene}-paper-test-e200.json").write_text(json.dumps(result))
 
 
@@ -42,8 +43,13 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
     # Constant velocity is computed from the test split for every scene, finished or not; on
     # eth it is what evaluate_params recorded beside the shipped model.
     assert (eth["cv_aoe"], eth["cv_foe"]) == pytest.approx((shipped["cv_aoe"], shipped["cv_foe"]))
-    assert "| zara2 | missing | missing | 0.32 | 0.70 | 0.31 / 0.69 |" in table
-    assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.21 | 0.38 | 0.34 / 0.63 |" in table
+    assert "| zara2 | missing | missing | - | 0.32 | 0.70 | 0.31 / 0.69 |" in table
+    # The release's spread statistic: the mean of the seeds' (0.10 and 0.15 for AOE).
+    assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.125 / 0.250 | 0.21 | 0.38 | 0.34 / 0.63 |" in table
+    release = ("-" if "release_aoe_std" not in shipped       # recorded before it existed
+               else f"{shipped['release_aoe_std']:.3f} / {shipped['release_foe_std']:.3f}")
+    assert (f"| eth | {shipped['aoe']:.3f} ± {shipped['aoe_std']:.3f} | {shipped['foe']:.3f} ± "
+            f"{shipped['foe_std']:.3f} | {release} |") in table
     assert "| AVG |" not in table                                  # three scenes, no average
 
 
@@ -69,8 +75,8 @@ def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
     TABLE1["main"](["--output", "gaussian", "--runs", str(tmp_path / "runs"), "--workdir",
                     str(tmp_path / "out")])
     table = (tmp_path / "out" / "table1_p.md").read_text()
-    assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 1.10 | 2.22 | -0.10 | 0.97 / 2.12 |" in table
-    assert "| AVG | 0.300 | 0.600 | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.51 / 1.10 | | | |" in table
+    assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 0.050 / 0.100 | 1.10 | 2.22 | -0.10 | 0.97 / 2.12 |" in table
+    assert "| AVG | 0.300 | 0.600 | | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.51 / 1.10 | | | |" in table
 
 
 def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_average_of_ours(
@@ -81,6 +87,6 @@ def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_averag
     assert [r["scene"] for r in rows] == ["eth", "hotel", "univ", "zara1", "zara2"]
     assert all("aoe" not in r and r["cv_aoe"] > 0 and r["pedestrians"] > 0 for r in rows)
     table = (tmp_path / "out" / "table1_loo.md").read_text()
-    assert "| AVG | - | - | 0.48 | 1.02 |" in table and "No average of ours" in table
+    assert "| AVG | - | - | | 0.48 | 1.02 |" in table and "No average of ours" in table
     assert "The paper did not report this protocol" in table
     assert (tmp_path / "out" / "table1_loo.png").stat().st_size > 10_000      # the bar figure
