@@ -65,7 +65,14 @@ def uniform(key: jax.Array, shape: Sequence[int], *, ghost_axis: int | None = No
 
 def normal(key: jax.Array, shape: Sequence[int]) -> jax.Array:
     """float32 standard normals (inverse CDF of a uniform strictly inside (0, 1))."""
-    u = uniform(key, shape) + jnp.float32(2.0 ** -25)
+    return standard_normal_quantile(uniform(key, shape))
+
+
+def standard_normal_quantile(u: jax.Array) -> jax.Array:
+    """The normal draw of a `uniform` value u in [0, 1) (steps of 2^-24): the quantile at the
+    middle of u's cell. The top cell's middle, 1 - 2^-25, rounds to 1 in float32, where the
+    quantile is infinite, so it is taken at 1 - 2^-24 instead (about 5.3)."""
+    u = jnp.minimum(u + jnp.float32(2.0 ** -25), jnp.float32(1.0 - 2.0 ** -24))
     return jnp.sqrt(jnp.float32(2.0)) * jax.lax.erf_inv(2.0 * u - 1.0)
 
 

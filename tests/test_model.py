@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import graph, losses
+from gst_jax import graph, losses, noise
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch, node_mask_from_positions
 from gst_jax.gumbel import gumbel_softmax, sample_gumbel
@@ -112,6 +112,17 @@ def test_gumbel_noise_depends_only_on_the_key():
     a = sample_gumbel(jax.random.key(3), (4, 5))
     np.testing.assert_array_equal(a, sample_gumbel(jax.random.key(3), (4, 5)))
     assert not np.allclose(a, sample_gumbel(jax.random.key(4), (4, 5)))
+
+
+def test_every_uniform_draw_gives_a_finite_normal():
+    # The largest uniform, 1 - 2^-24, once rounded to 1 (an infinite normal, then NaN
+    # predictions: a zara1 GST (P) training stopped on it at epoch 10).
+    cells = jnp.array([0.0, 2.0 ** -24, 0.5, 1.0 - 2.0 ** -23, 1.0 - 2.0 ** -24], jnp.float32)
+    draws = np.asarray(noise.standard_normal_quantile(cells))
+    assert np.all(np.isfinite(draws)) and np.all(np.diff(draws) > 0)
+    assert -5.6 < draws[0] < -5.2 and abs(draws[2]) < 1e-6 and 5.2 < draws[-1] < 5.6
+    sample = np.asarray(noise.normal(jax.random.key(0), (100_000,)))
+    assert abs(sample.mean()) < 0.02 and abs(sample.std() - 1.0) < 0.02
 
 
 def test_fully_masked_attention_row_is_zero_not_nan():
