@@ -2,7 +2,9 @@
 
 Observation: the selector and encoder run on all observed steps in one call, and the masked
 LSTM folds them with `lax.scan`. Prediction: a `lax.scan` over the remaining steps whose
-carry holds the LSTM state, the last displacement, the evolving edges and the PRNG key.
+carry holds the LSTM state, the last displacement, the evolving edges and the PRNG key; it
+runs on the first P slots when the batch says the pedestrians to predict sit there
+(`SceneBatch.predicted_slots`), since nobody else takes part after the observation.
 With `temporal='tcn'` the prediction is instead the release's convolutional readout of the
 encoded observed steps, all predicted steps at once.
 
@@ -50,7 +52,8 @@ class RolloutOutput:
     displacements: (B, P, N, 2) predicted displacements, zero for pedestrians not predicted
       (GST (D): mu; GST (P): the sampled displacement).
     mu, sigma: (B, P, N, 2); corr: (B, P, N): Gaussian parameters from the output head.
-    edge_probs, sampled_edges: (B, S, N, G, L) per target, head slot and neighbour.
+    edge_probs, sampled_edges: (B, S, N, G, L) per target, head slot and neighbour (in the
+      prediction steps, zero for targets beyond the predicted slots).
     predicted_mask: (B, N) keep: pedestrians valid at the last observed step.
     attention: (layers, B, S, heads, N, L) encoder attention, or None unless requested.
     """
