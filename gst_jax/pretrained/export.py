@@ -12,7 +12,7 @@ import orbax.checkpoint as ocp
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig
 from gst_jax.evaluation import evaluate_params
-from gst_jax.pretrained import ROOT
+from gst_jax.pretrained import ROOT, load_meta, load_pretrained
 from gst_jax.runs import load_run, run_config
 
 # The fixed-key check stored with every model: AOE on the first windows of its test split.
@@ -31,7 +31,6 @@ def check_aoe(config: ModelConfig, params, data_config: DataConfig) -> float:
 def recheck(name: str) -> tuple[float, float]:
     """Re-record a shipped model's fixed-key check (after a change to how draws are made,
     e.g. the order of a window's pedestrians); returns the old and the new AOE."""
-    from gst_jax.pretrained import load_meta, load_pretrained
     meta = load_meta(name)
     config, params = load_pretrained(name)
     old = meta["check"]["aoe"]
