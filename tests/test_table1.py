@@ -26,9 +26,9 @@ def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[f
 def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_path):
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
     _fake_run(tmp_path / "runs", "hotel", 1001, 0.30, [60.0])
-    TABLE1["main"](["--scenes", "hotel", "eth", "zara2", "--seeds", "1000,1001", "--runs",
+    TABLE1["main"](["--scenes", "hotel", "eth", "univ", "--seeds", "1000,1001", "--runs",
                     str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")])
-    hotel, eth, zara2 = json.loads((tmp_path / "out" / "table1.json").read_text())
+    hotel, eth, univ = json.loads((tmp_path / "out" / "table1.json").read_text())
 
     assert hotel["seeds"] == [1000, 1001] and hotel["spread_over"] == "seeds"
     assert hotel["aoe"] == pytest.approx(0.25) and hotel["aoe_spread"] == pytest.approx(0.05)
@@ -38,12 +38,12 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
                           / "meta.json").read_text())["test_metrics"]
     assert eth["seeds"] == [1000] and eth["aoe"] == shipped["aoe"]
     assert eth["aoe_spread"] == shipped["aoe_std"] and eth["spread_over"] == "20 runs"
-    assert "aoe" not in zara2
+    assert "aoe" not in univ                                       # nothing trained, nothing shipped
     table = (tmp_path / "out" / "table1.md").read_text()
     # Constant velocity is computed from the test split for every scene, finished or not; on
     # eth it is what evaluate_params recorded beside the shipped model.
     assert (eth["cv_aoe"], eth["cv_foe"]) == pytest.approx((shipped["cv_aoe"], shipped["cv_foe"]))
-    assert "| zara2 | missing | missing | - | 0.32 | 0.70 | 0.31 / 0.69 |" in table
+    assert "| univ | missing | missing | - | 0.50 | 1.08 | 0.52 / 1.16 |" in table
     # The release's spread statistic: the mean of the seeds' (0.10 and 0.15 for AOE).
     assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.125 / 0.250 | 0.21 | 0.38 | 0.34 / 0.63 |" in table
     release = ("-" if "release_aoe_std" not in shipped       # recorded before it existed
