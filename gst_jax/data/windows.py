@@ -56,12 +56,12 @@ class Window:
     @property
     def num_observed(self) -> int:
         """Pedestrians valid at some observed step (the first slots)."""
-        return int(node_mask_from_positions(self.position_mask)[:self.obs_len].any(axis=0).sum())
+        return int(np.sum(_groups(self.position_mask, self.obs_len) <= OBSERVED))
 
     @property
     def num_predicted(self) -> int:
         """Pedestrians the model predicts: valid at the last observed step (the first slots)."""
-        return int(node_mask_from_positions(self.position_mask)[self.obs_len - 1].sum())
+        return int(np.sum(_groups(self.position_mask, self.obs_len) == PREDICTED))
 
     def fully_detected(self) -> np.ndarray:
         """(N_w,) bool: detected at every step (docs/MODEL.md 1.8)."""
@@ -135,12 +135,21 @@ def _window_from_rows(tracks: Tracks, rows: np.ndarray, start_frame: int,
     position_mask[step[on_grid], slot[on_grid]] = 1.0
     if not (position_mask.min(axis=0) > 0).any():
         return None
-    # Predicted first, then observed only, then unobserved (see Window); stable: id order.
-    node_mask = node_mask_from_positions(position_mask)
-    group = np.where(node_mask[obs_len - 1] > 0, 0, np.where(node_mask[:obs_len].any(axis=0), 1, 2))
-    order = np.argsort(group, kind="stable")
+    order = np.argsort(_groups(position_mask, obs_len), kind="stable")     # then id order
     return Window(positions[:, order], position_mask[:, order], pedestrian_ids[order],
                   tracks.path, start_frame, tracks.frame_step, obs_len, origin)
+
+
+# A window's pedestrian groups, in the order its slots list them (see Window).
+PREDICTED, OBSERVED, UNOBSERVED = 0, 1, 2
+
+
+def _groups(position_mask: np.ndarray, obs_len: int) -> np.ndarray:
+    """(T, N) position mask -> (N,) group of each pedestrian: PREDICTED (valid at the last
+    observed step), OBSERVED (valid at an earlier observed step only) or UNOBSERVED."""
+    node_mask = node_mask_from_positions(position_mask)
+    return np.where(node_mask[obs_len - 1] > 0, PREDICTED,
+                    np.where(node_mask[:obs_len].any(axis=0), OBSERVED, UNOBSERVED))
 
 
 def kept(windows: Sequence[Window | None]) -> list[Window]:
