@@ -178,6 +178,15 @@ def run_config(model_config: ModelConfig, data_config: DataConfig, train_config:
     return config
 
 
+def same_run(config: dict, other: dict) -> bool:
+    """Whether two run configs train the same thing. The checkpoint cadence says only how
+    often the run is saved, so a resumed run may change it (e.g. to save every epoch of a
+    long run that has to be continued over several sittings)."""
+    def identity(c: dict) -> dict:
+        return {**c, "train": {k: v for k, v in c["train"].items() if k != "checkpoint_every"}}
+    return identity(config) == identity(other)
+
+
 def run_name(data_config: DataConfig, model_config: ModelConfig,
              train_config: TrainConfig) -> str:
     """A work directory name that identifies a run, so the same command finds it to resume."""
@@ -234,9 +243,12 @@ class WorkDir:
         config.json and, should that be gone, the config stored with its checkpoints)."""
         config_path = self.path / "config.json"
         if config_path.exists():
-            if json.loads(config_path.read_text()) != config:
+            stored = json.loads(config_path.read_text())
+            if not same_run(stored, config):
                 raise RunError(f"{self.path} holds a run with a different configuration "
                                f"({config_path}); choose another --workdir or delete it")
+            if stored != config and self.writes:        # a new checkpoint cadence
+                config_path.write_text(json.dumps(config, indent=2) + "\n")
             return
         if (self.path / "checkpoints").is_dir():
             checkpointer = self.checkpointer(create=False)
@@ -245,7 +257,7 @@ class WorkDir:
                           else checkpointer.read_config())
             finally:
                 checkpointer.close()
-            if stored != config:
+            if not same_run(stored, config):
                 raise RunError(f"{self.path} holds checkpoints of a run with a different "
                                "configuration (its config.json is missing); choose another "
                                "--workdir or delete it")

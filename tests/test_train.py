@@ -241,6 +241,18 @@ def test_a_kill_at_a_checkpoint_resumes_with_one_line_per_epoch(tmp_path, monkey
     _assert_like_uninterrupted(tmp_path, uninterrupted)
 
 
+def test_a_resumed_run_may_change_its_checkpoint_cadence(tmp_path, monkeypatch, uninterrupted):
+    with monkeypatch.context() as patched:
+        _kill_at_save(patched, 2, before=False)
+        with pytest.raises(_Killed):
+            fit(MODEL, ZARA1, FAULT_RUN, tmp_path)
+    fit(MODEL, ZARA1, dataclasses.replace(FAULT_RUN, checkpoint_every=5), tmp_path)
+    _assert_like_uninterrupted(tmp_path, uninterrupted)
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir() if p.is_dir()) == \
+        ["1", "2", "3"]
+    assert json.loads((tmp_path / "config.json").read_text())["train"]["checkpoint_every"] == 5
+
+
 def _damage(folder: Path, how: str) -> None:
     """Truncate, or flip bytes in the middle of, the largest file of a checkpoint."""
     path = max((p for p in folder.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)

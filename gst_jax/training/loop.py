@@ -1,12 +1,12 @@
 """The epoch loop, written once for single runs and sweeps, and `fit`, which trains one run.
 
-The loop resumes from the newest intact checkpoint (of the same configuration), saves a
-checkpoint every `checkpoint_every` epochs and at the end, each with the metrics records of
-every epoch so far, writes one metrics.jsonl line per epoch (rewritten from the checkpoint on
-resume, so a kill at any moment leaves one line per completed epoch), shows progress with an
-ETA, and applies the non-finite policy: a step whose loss, gradients or new state are not
-finite keeps the state it had (`make_train_step` does that); a single run then stops with
-`NonFiniteError`, a sweep counts it per member and goes on.
+The loop resumes from the newest intact checkpoint (of the same configuration; only the
+checkpoint cadence may change), saves a checkpoint every `checkpoint_every` epochs and at the
+end, each with the metrics records of every epoch so far, writes one metrics.jsonl line per
+epoch (rewritten from the checkpoint on resume, so a kill at any moment leaves one line per
+completed epoch), shows progress with an ETA, and applies the non-finite policy: a step whose
+loss, gradients or new state are not finite keeps the state it had (`make_train_step` does
+that); a single run then stops with `NonFiniteError`, a sweep counts it per member and goes on.
 
 `python -m gst_jax.train` with no arguments trains the paper's configuration (GST (D), n = 1,
 ghost, seed 1000, 200 epochs, 16 scenes per step, Adam 1e-3 x 0.3 every 50 epochs, tau
@@ -32,7 +32,7 @@ from gst_jax.evaluation import evaluate_params
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress, hms
-from gst_jax.runs import Run, RunError, WorkDir, load_model, run_config
+from gst_jax.runs import Run, RunError, WorkDir, load_model, run_config, same_run
 from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
                                     hparams_for_epoch, make_optimizer, parameter_key, step_key,
                                     validation_key)
@@ -91,7 +91,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     else:
         state, stored_config, records, last_epoch = checkpointer.restore(
             jax.eval_shape(training.init_state), fall_back=True)
-        if stored_config != config:
+        if not same_run(stored_config, config):
             raise RunError(f"the checkpoints in {workdir.path} belong to a run with a different "
                            "configuration; choose another --workdir or delete it")
         checkpointer.discard_after(last_epoch)          # damaged ones that were skipped
