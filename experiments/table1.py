@@ -11,12 +11,18 @@ paper protocol (`python -m gst_jax.evaluate`, 20 runs). Every finished evaluatio
 as a small record in <results>/runs/<run name>.json (committed), so the table survives the loss
 of the work directories. Scenes without a finished evaluation are listed as missing, never
 filled in. Writes <results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
+
+A run longer than one sitting (univ on two CPU cores) continues in the next one: `--park`
+copies the newest checkpoint of every unfinished run into <results>/resume/<run name>/, to be
+committed; `--train` on a machine without the work directory starts from that copy, and the
+copy is deleted once the run's evaluation is recorded.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -65,19 +71,39 @@ def shipped_record(scene: str, protocol: str, output: str, epochs: int,
             "train_time_s": meta.get("train_time_s")}
 
 
+def park(workdir: Path, parked: Path) -> int | None:
+    """Copy the run's config and newest checkpoint (with its checksum) to `parked`; returns
+    its epoch, or None when the run has no checkpoint yet."""
+    checkpoints = workdir / "checkpoints"
+    epochs = sorted(int(p.name) for p in checkpoints.glob("[0-9]*") if p.is_dir())
+    if not epochs:
+        return None
+    shutil.rmtree(parked, ignore_errors=True)
+    (parked / "checkpoints").mkdir(parents=True)
+    shutil.copy2(workdir / "config.json", parked / "config.json")
+    shutil.copytree(checkpoints / str(epochs[-1]), parked / "checkpoints" / str(epochs[-1]))
+    checksums = json.loads((checkpoints / "checksums.json").read_text())
+    (parked / "checkpoints" / "checksums.json").write_text(
+        json.dumps({str(epochs[-1]): checksums[str(epochs[-1])]}, indent=1))
+    return epochs[-1]
+
+
 def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output: str,
-                   epochs: int, seed: int, train: bool) -> dict | None:
+                   epochs: int, seed: int, train: bool,
+                   train_options: tuple[str, ...] = ()) -> dict | None:
     """Evaluation and training time of one run: its work directory's final evaluation (kept as
     a record in `records`), else that record, else the record of the shipped model trained by
     the same command, else (if `train`) a new run."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
     record_path = records / f"{workdir.name}.json"
+    parked = records.parent / "resume" / workdir.name
     data_config = DataConfig(scene=scene, protocol=protocol)
     if (result := WorkDir(workdir).read_evaluation(data_config, "test", epochs)) is not None:
         record = {**result, "seed": seed, "workdir": str(workdir),
                   "train_time_s": WorkDir(workdir).training_time_s()}
         records.mkdir(parents=True, exist_ok=True)
         record_path.write_text(json.dumps(record, indent=2) + "\n")
+        shutil.rmtree(parked, ignore_errors=True)
         return record
     if record_path.exists():
         return json.loads(record_path.read_text())
@@ -85,9 +111,11 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
         return {**record, "seed": seed}
     if not train:
         return None
+    if parked.is_dir() and not (workdir / "checkpoints").is_dir():
+        shutil.copytree(parked, workdir)                # continue another sitting's run
     subprocess.run([sys.executable, "-m", "gst_jax.train",
-                    *train_flags(scene, protocol, output, epochs, seed), "--workdir", str(workdir)],
-                   check=True)
+                    *train_flags(scene, protocol, output, epochs, seed), *train_options,
+                    "--workdir", str(workdir)], check=True)
     subprocess.run([sys.executable, "-m", "gst_jax.evaluate", str(workdir)], check=True)
     return run_scene_seed(runs, records, scene, protocol, output, epochs, seed, train=False)
 
@@ -192,6 +220,12 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated training seeds (default: 1000, the paper's)")
     parser.add_argument("--train", action="store_true",
                         help="train (or resume) and evaluate runs that have no final evaluation")
+    parser.add_argument("--checkpoint-every", type=int, default=5,
+                        help="epochs between checkpoints of the runs --train starts or resumes "
+                             "(default: 5)")
+    parser.add_argument("--park", action="store_true",
+                        help="copy the newest checkpoint of each unfinished run into "
+                             "<workdir>/resume/ (commit it to continue in another sitting)")
     parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
     parser.add_argument("--workdir", default="results",
                         help="where table1[_loo][_p].md/.json and the per-run records runs/*.json "
@@ -199,12 +233,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = parser.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",")]
+    records = Path(args.workdir) / "runs"
+    if args.park:
+        for scene in args.scenes:
+            for seed in seeds:
+                workdir = workdir_of(Path(args.runs), scene, args.protocol, args.output,
+                                     args.epochs, seed)
+                if not (records / f"{workdir.name}.json").exists() and (
+                        epoch := park(workdir, records.parent / "resume" / workdir.name)):
+                    print(f"parked {workdir.name} after epoch {epoch}", file=sys.stderr)
+        return
 
     rows = []
     for scene in args.scenes:
         per_seed = [r for seed in seeds if (r := run_scene_seed(
-            Path(args.runs), Path(args.workdir) / "runs", scene, args.protocol, args.output,
-            args.epochs, seed, args.train))]
+            Path(args.runs), records, scene, args.protocol, args.output, args.epochs, seed,
+            args.train, ("--checkpoint-every", str(args.checkpoint_every))))]
         seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
         command = " ".join(["python -m gst_jax.train", *train_flags(
             scene, args.protocol, args.output, args.epochs, seed_shown)])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import runpy
+import shutil
 from pathlib import Path
 
 import pytest
@@ -90,3 +91,45 @@ def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_averag
     assert "| AVG | - | - | | 0.48 | 1.02 |" in table and "No average of ours" in table
     assert "The paper did not report this protocol" in table
     assert (tmp_path / "out" / "table1_loo.png").stat().st_size > 10_000      # the bar figure
+
+
+class _SittingEnds(BaseException):
+    """The machine is given back during the second epoch."""
+
+
+def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recorded(
+        tmp_path, monkeypatch):
+    from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+    from gst_jax.runs import Checkpointer, WorkDir
+    from gst_jax.training.loop import fit
+
+    config, zara1 = TrainConfig(epochs=2, batch_size=8, max_train_windows=8,
+                                checkpoint_every=1), DataConfig(scene="zara1")
+    save = Checkpointer.save
+
+    def end_at_the_second(self, epoch, *args):
+        if epoch == 2:
+            raise _SittingEnds
+        save(self, epoch, *args)
+
+    with monkeypatch.context() as patched:
+        patched.setattr(Checkpointer, "save", end_at_the_second)
+        with pytest.raises(_SittingEnds):
+            fit(ModelConfig(), zara1, config, tmp_path / "first")
+    first_epoch = WorkDir(tmp_path / "first").read_metrics()
+    parked = tmp_path / "results" / "resume" / "run"
+    assert TABLE1["park"](tmp_path / "first", parked) == 1
+    assert sorted(p.name for p in (parked / "checkpoints").iterdir()) == ["1", "checksums.json"]
+
+    shutil.copytree(parked, tmp_path / "second")            # the next sitting, another machine
+    fit(ModelConfig(), zara1, config, tmp_path / "second")
+    records = WorkDir(tmp_path / "second").read_metrics()
+    assert [r["epoch"] for r in records] == [1, 2] and records[:1] == first_epoch
+
+    # Once the run's evaluation is recorded, its parked copy is deleted.
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0])
+    parked = tmp_path / "results" / "resume" / "hotel-paper-d-n1-e200-seed1000"
+    parked.mkdir(parents=True)
+    TABLE1["main"](["--scenes", "hotel", "--runs", str(tmp_path / "runs"), "--workdir",
+                    str(tmp_path / "results")])
+    assert not parked.exists()
