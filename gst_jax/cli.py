@@ -133,7 +133,7 @@ def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
 
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
     """--edge-heads (one n, or a comma-separated list for sweeps), --no-ghost, --output,
-    --temporal."""
+    --temporal, --node-dim."""
     group = parser.add_argument_group("model")
     if several_edge_heads:
         group.add_argument("--edge-heads", default="0,1,2,4,8,16", type=parse_edge_heads,
@@ -151,6 +151,10 @@ def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool
                        help="lstm: recurrent rollout, interacting at every predicted step "
                             "(paper); tcn: the release's temporal convolution readout of the "
                             "observed steps (default: lstm)")
+    group.add_argument("--node-dim", type=positive_int, default=ModelConfig.node_dim,
+                       help="d, the width of node embeddings and of the LSTM input; edges get "
+                            "2d (default: 32, docs/MODEL.md; the release's training scripts "
+                            "leave its --embedding_size at 64)")
 
 
 def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> None:
@@ -265,7 +269,8 @@ def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> Dat
 def model_config(args: argparse.Namespace) -> ModelConfig:
     edge_heads = args.edge_heads if isinstance(args.edge_heads, int) else args.edge_heads[0]
     return ModelConfig(num_edge_heads=edge_heads, ghost=not args.no_ghost,
-                       output=args.output, temporal=args.temporal)
+                       output=args.output, temporal=args.temporal, node_dim=args.node_dim,
+                       edge_dim=2 * args.node_dim)
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:

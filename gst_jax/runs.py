@@ -197,6 +197,8 @@ def run_name(data_config: DataConfig, model_config: ModelConfig,
         parts.append("noghost")
     if model_config.temporal != "lstm":
         parts.append(model_config.temporal)
+    if model_config.node_dim != ModelConfig.node_dim:
+        parts.append(f"d{model_config.node_dim}")
     if train_config.fully_detected_only:
         parts.append("fd")
     if train_config.init:

@@ -81,3 +81,27 @@ def test_params_round_trip_through_torch_layout(fixture):
         assert set(back) == set(weights) - unused
         for name, value in back.items():
             np.testing.assert_array_equal(value, weights[name], err_msg=name)
+
+
+def test_node_dim_64_has_the_layout_the_release_scripts_train():
+    """run/train_sparse.sh never passes its embedding_size=32, so the release trains with its
+    argparse default, 64 (fixtures/release_script_shapes.json, from the release's own model):
+    `--node-dim 64` builds exactly those tensors, and they convert both ways."""
+    import json
+
+    import jax
+
+    from gst_jax.config import ModelConfig
+    from gst_jax.model import init_params
+
+    release = json.loads((FIXTURE.parent / "release_script_shapes.json").read_text())
+    d = release["embedding_size"]
+    config = ModelConfig(node_dim=d, edge_dim=2 * d)
+    params = init_params(config, jax.random.key(0))
+    torch_layout = interop.params_to_torch(params, num_edge_heads=1, config=config)
+    unused = {k for k in release["shapes"] if "edge_selector.self_attn.out_proj" in k}
+    assert {k: list(v.shape) for k, v in torch_layout.items()} == {
+        k: v for k, v in release["shapes"].items() if k not in unused}
+    back = interop.params_from_torch(torch_layout, num_edge_heads=1, ghost=True, config=config)
+    for x, y in zip(jax.tree.leaves(back), jax.tree.leaves(params)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -15,7 +15,7 @@ import pytest
 
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-from gst_jax.runs import Checkpointer, RunError, WorkDir, load_run
+from gst_jax.runs import Checkpointer, RunError, WorkDir, load_run, run_name
 from gst_jax.training.loop import NonFiniteError, fit
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
@@ -68,6 +68,13 @@ def _poisoned(step: data.PackedStep, scene: int, time: int, pedestrian=slice(Non
     positions = np.array(batch.positions)
     positions[scene, time, pedestrian] = np.nan
     return step._replace(micro_batches=(batch._replace(positions=positions),))
+
+
+def test_run_names_say_what_differs_from_the_paper_configuration():
+    assert run_name(DataConfig(), MODEL, TrainConfig()) == "eth-paper-d-n1-e200-seed1000"
+    wide = ModelConfig(output="gaussian", node_dim=64, edge_dim=128, ghost=False)
+    assert (run_name(DataConfig(scene="hotel"), wide, TrainConfig(epochs=5, seed=3))
+            == "hotel-paper-p-n1-noghost-d64-e5-seed3")
 
 
 def test_schedule_matches_release():
