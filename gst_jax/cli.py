@@ -38,6 +38,15 @@ def positive_int(text: str) -> int:
     return value
 
 
+def node_width(text: str) -> int:
+    """An argparse type: a node width that the encoder's heads divide."""
+    value, heads = positive_int(text), ModelConfig.encoder_heads
+    if value % heads:
+        raise argparse.ArgumentTypeError(f"must be a multiple of {heads} (the encoder's heads), "
+                                         f"got {value}")
+    return value
+
+
 def count(text: str) -> int:
     """An argparse type: an integer of at least 0."""
     value = int(text)
@@ -151,7 +160,7 @@ def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool
                        help="lstm: recurrent rollout, interacting at every predicted step "
                             "(paper); tcn: the release's temporal convolution readout of the "
                             "observed steps (default: lstm)")
-    group.add_argument("--node-dim", type=positive_int, default=ModelConfig.node_dim,
+    group.add_argument("--node-dim", type=node_width, default=ModelConfig.node_dim,
                        help="d, the width of node embeddings and of the LSTM input; edges get "
                             "2d (default: 32, docs/MODEL.md; the release's training scripts "
                             "leave its --embedding_size at 64)")

@@ -106,6 +106,9 @@ class ModelConfig:
     pred_len: int = 12
 
     def __post_init__(self):
+        if self.node_dim % self.encoder_heads:
+            raise ValueError(f"node_dim {self.node_dim} must be a multiple of encoder_heads "
+                             f"{self.encoder_heads}")
         if self.selector_dim % self.head_slots:
             raise ValueError(f"max_edge_heads {self.head_slots} must divide {self.selector_dim}")
         if self.num_edge_heads and self.head_slots % self.num_edge_heads:

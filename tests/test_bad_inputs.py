@@ -156,6 +156,7 @@ def test_train_with_a_malformed_file_prints_one_line_and_leaves_nothing(tmp_path
     (["--learning-rate", "nan"], "--learning-rate: must be a positive number, got nan"),
     (["--learning-rate", "-0.1"], "--learning-rate: must be a positive number, got -0.1"),
     (["--max-train-windows", "-1"], "--max-train-windows: must be 0 or more, got -1"),
+    (["--node-dim", "20"], "--node-dim: must be a multiple of 8 (the encoder's heads), got 20"),
 ])
 def test_bad_training_flags_are_refused_before_anything_runs(tmp_path, capsys, flags, problem):
     from gst_jax import train
