@@ -105,3 +105,29 @@ def test_node_dim_64_has_the_layout_the_release_scripts_train():
     back = interop.params_from_torch(torch_layout, num_edge_heads=1, ghost=True, config=config)
     for x, y in zip(jax.tree.leaves(back), jax.tree.leaves(params)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_fresh_parameters_are_drawn_as_the_release_draws_them():
+    """Training from scratch starts where the release starts: the same constants, and uniform
+    draws with the release's bounds (fixtures/release_init_max_abs.json, from a fresh release
+    model: a tensor of 256 or more uniform draws reaches its bound within 1 %)."""
+    import json
+
+    import jax
+
+    from gst_jax.config import ModelConfig
+    from gst_jax.model import init_params
+
+    release = json.loads((FIXTURE.parent / "release_init_max_abs.json").read_text())["tensors"]
+    ours = interop.params_to_torch(init_params(ModelConfig(), jax.random.key(0)),
+                                   num_edge_heads=1)
+    assert set(ours) <= set(release)
+    for name, value in ours.items():
+        shape, max_abs = release[name]
+        assert list(value.shape) == shape, name
+        if max_abs == 0.0:
+            assert not value.any(), name
+        elif "norm" in name:
+            assert (value == max_abs).all(), name
+        elif value.size >= 256:
+            assert np.abs(value).max() == pytest.approx(max_abs, rel=0.03), name

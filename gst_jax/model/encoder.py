@@ -8,7 +8,7 @@ import jax.numpy as jnp
 
 from gst_jax.config import ModelConfig
 from gst_jax.graph import float_mask_attention_weights
-from gst_jax.model.layers import Dropout, layer_norm, torch_dense
+from gst_jax.model.layers import Dropout, layer_norm, torch_dense, torch_uniform
 
 
 class NodeEncoderLayer(nn.Module):
@@ -20,9 +20,10 @@ class NodeEncoderLayer(nn.Module):
         d = self.config.node_dim
         self.norm_node = layer_norm()
         self.norm1_node = layer_norm()
-        # torch.nn.MultiheadAttention: xavier in_proj with zero bias, out_proj bias zero.
+        # torch.nn.MultiheadAttention: a xavier-uniform in_proj with zero bias; its out_proj is
+        # a plain Linear (U(+-1/sqrt(d))) whose bias is then zeroed.
         self.in_proj = nn.Dense(3 * d, kernel_init=nn.initializers.xavier_uniform())
-        self.out_proj = nn.Dense(d, kernel_init=nn.initializers.xavier_uniform())
+        self.out_proj = nn.Dense(d, kernel_init=torch_uniform(d))
         self.linear1 = torch_dense(self.config.encoder_ff_dim, d)
         self.linear2 = torch_dense(d, self.config.encoder_ff_dim)
         self.dropout = Dropout(self.config.dropout)
