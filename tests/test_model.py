@@ -265,6 +265,27 @@ def test_hash_dropout_is_bernoulli_with_independent_masks_per_key():
     assert dropout.apply({}, x, deterministic=True) is x
 
 
+def test_encoder_attention_weights_are_dropped_in_training_as_the_release_does():
+    """The release's node encoder calls torch's multi-head attention with dropout 0.1, which
+    drops attention weights (after the graph mask) as well as the layer's outputs."""
+    from gst_jax.model.encoder import NodeEncoderLayer
+
+    layer, n = NodeEncoderLayer(ModelConfig()), 40
+    x = jax.random.normal(jax.random.key(0), (8, n, 32))
+    valid = jnp.ones((8, n))
+    adjacency = jnp.ones((8, n, n + 1))                     # everyone attends to everyone
+    variables = layer.init(jax.random.key(1), x, valid, adjacency, deterministic=True)
+    (_, weights), captured = layer.apply(
+        variables, x, valid, adjacency, deterministic=False, rngs={"dropout": jax.random.key(2)},
+        capture_intermediates=True)
+    kept = np.asarray(captured["intermediates"]["attention_dropout"]["__call__"][0])
+    ratio = kept / np.asarray(weights)                      # (8, heads, n, n + 1), all > 0
+    np.testing.assert_allclose(np.unique(np.round(ratio, 5)), [0.0, 1 / 0.9], rtol=1e-5)
+    assert abs((ratio > 0).mean() - 0.9) < 0.01             # 105k draws: sd 1e-3
+    _, evaluated = layer.apply(variables, x, valid, adjacency, deterministic=True)
+    np.testing.assert_array_equal(evaluated, weights)       # returned before dropout
+
+
 def test_draws_of_a_window_do_not_depend_on_its_padding():
     """Gumbel noise and dropout masks of the real pedestrians and of the ghost are the same
     for a window padded to 5 or to 9 slots (what size-packed training steps rely on)."""

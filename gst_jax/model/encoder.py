@@ -27,6 +27,8 @@ class NodeEncoderLayer(nn.Module):
         self.linear1 = torch_dense(self.config.encoder_ff_dim, d)
         self.linear2 = torch_dense(d, self.config.encoder_ff_dim)
         self.dropout = Dropout(self.config.dropout)
+        # The release's attention drops its weights too (torch's MHA dropout), ghost last.
+        self.attention_dropout = Dropout(self.config.dropout, ghost_axis=-1)
 
     def __call__(self, x: jax.Array, node_valid: jax.Array, sampled_adjacency: jax.Array, *,
                  deterministic: bool) -> tuple[jax.Array, jax.Array]:
@@ -44,7 +46,8 @@ class NodeEncoderLayer(nn.Module):
         split = lambda t: t.reshape(t.shape[:-1] + (heads, d // heads))
         scores = jnp.einsum("...lhc,...mhc->...hlm", split(q), split(k)) / jnp.sqrt(d // heads)
         weights = float_mask_attention_weights(scores, sampled_adjacency[..., None, :, :])
-        attended = jnp.einsum("...hlm,...mhc->...lhc", weights, split(v)).reshape(x.shape)
+        kept = self.attention_dropout(weights, deterministic=deterministic)
+        attended = jnp.einsum("...hlm,...mhc->...lhc", kept, split(v)).reshape(x.shape)
         # The residual adds to the normalised x, as the release does.
         x = x + self.dropout(self.out_proj(attended), deterministic=deterministic)
         feed_forward = self.linear2(self.dropout(nn.relu(self.linear1(self.norm1_node(x))),
