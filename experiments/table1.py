@@ -100,7 +100,8 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
     data_config = DataConfig(scene=scene, protocol=protocol)
     if (result := WorkDir(workdir).read_evaluation(data_config, "test", epochs)) is not None:
         record = {**result, "seed": seed, "workdir": str(workdir),
-                  "train_time_s": WorkDir(workdir).training_time_s()}
+                  "train_time_s": WorkDir(workdir).training_time_s(),
+                  "code": WorkDir(workdir).code_versions()}
         records.mkdir(parents=True, exist_ok=True)
         record_path.write_text(json.dumps(record, indent=2) + "\n")
         shutil.rmtree(parked, ignore_errors=True)
@@ -144,7 +145,7 @@ def summarize(scene: str, output: str, per_seed: list[dict], command: str,
                else "20 runs", epoch=per_seed[0]["epoch"], protocol=per_seed[0]["protocol"],
                train_time_s=[r["train_time_s"] for r in per_seed],
                per_seed={str(r["seed"]): {"aoe": r["aoe"], "foe": r["foe"],
-                                          "workdir": r["workdir"],
+                                          "workdir": r["workdir"], "code": r.get("code"),
                                           **({"note": r["note"]} if "note" in r else {})}
                          for r in per_seed})
     return row
@@ -196,6 +197,13 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
                      f"{mean('cv_aoe'):.2f} / {mean('cv_foe'):.2f} | | | |")
         if not finished:
             lines += ["", "No average of ours: not every scene has a finished run."]
+    trained_by = [f"{r['scene']} {seed}: {', '.join(run['code']) if run.get('code') else 'before'}"
+                  for r in rows for seed, run in r.get("per_seed", {}).items()]
+    if trained_by:
+        lines += ["", "Code that trained each run (git commit; 'before': trained before commits "
+                  "were recorded, i.e. before the release-faithful encoder initialisation and "
+                  "attention dropout of commits f5608ec and d394412, results/NOTES.md): "
+                  + "; ".join(trained_by) + "."]
     for r in rows:
         for seed, run in r.get("per_seed", {}).items():
             if run["workdir"].startswith("gst_jax/pretrained/"):

@@ -2,7 +2,7 @@
 
     <workdir>/config.json                 the run's configuration (model, data, train[, members])
     <workdir>/checkpoints/<epoch>/        orbax: the training state and the config
-    <workdir>/metrics.jsonl               one JSON line per epoch
+    <workdir>/metrics.jsonl               one JSON line per epoch (with the code that trained it)
     <workdir>/summary.json                the training's summary, once it has finished
     <workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json, .md    evaluations
     <workdir>/figures/                    figures of `python -m gst_jax.plot`
@@ -15,9 +15,11 @@ A model is named by a work directory (or one of its `checkpoints/<epoch>`), by
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
+import subprocess
 import warnings
 from pathlib import Path
 from typing import Any, NamedTuple, Sequence
@@ -162,6 +164,25 @@ class Checkpointer:
         return None
 
 
+@functools.cache
+def code_version() -> str:
+    """The git commit of this gst_jax checkout ('+dirty' when gst_jax/ has uncommitted
+    changes), recorded with every epoch so that a result names the code that trained it;
+    'gst_jax <version>' outside a git checkout."""
+    root = Path(__file__).resolve().parents[1]
+    git = ["git", "-C", str(root)]
+    try:
+        commit = subprocess.run([*git, "rev-parse", "--short=10", "HEAD"], capture_output=True,
+                                text=True, check=True, timeout=10).stdout.strip()
+        changes = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no", "--",
+                                  "gst_jax"], capture_output=True, text=True, check=True,
+                                 timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        from importlib.metadata import version
+        return f"gst_jax {version('gst_jax')}"
+    return commit + ("+dirty" if changes else "")
+
+
 def _write_atomically(path: Path, text: str) -> None:
     temporary = path.with_suffix(path.suffix + ".tmp")
     temporary.write_text(text)
@@ -294,6 +315,10 @@ class WorkDir:
         if self.writes:
             lines = "".join(json.dumps(r) + "\n" for r in records)
             _write_atomically(self.metrics_path, lines)
+
+    def code_versions(self) -> list[str]:
+        """The code versions that trained the run's epochs, in order of first use."""
+        return list(dict.fromkeys(r["code"] for r in self.read_metrics() if "code" in r))
 
     def training_time_s(self) -> float:
         """Sum of the epoch times: the training's wall time across resumes."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import pytest
 
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-from gst_jax.runs import Checkpointer, RunError, WorkDir, load_run, run_name
+from gst_jax.runs import Checkpointer, RunError, WorkDir, code_version, load_run, run_name
 from gst_jax.training.loop import NonFiniteError, fit
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
@@ -191,6 +192,9 @@ def test_validation_split_is_evaluated_during_training(tmp_path):
                .splitlines()]
     assert [r["epoch"] for r in records] == [1, 2]
     assert all(r["val_aoe"] > 0 and r["val_foe"] >= r["val_aoe"] * 0.5 for r in records)
+    # Every epoch names the code that trained it: this checkout's commit.
+    assert WorkDir(tmp_path / "run").code_versions() == [code_version()]
+    assert re.fullmatch(r"[0-9a-f]{10}(\+dirty)?|gst_jax \S+", code_version())
 
 
 # --- faults: every kind ends with one metrics line per epoch and the parameters of an ---

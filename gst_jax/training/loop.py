@@ -32,7 +32,8 @@ from gst_jax.evaluation import evaluate_params
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress, hms
-from gst_jax.runs import Run, RunError, WorkDir, load_model, run_config, same_run
+from gst_jax.runs import (Run, RunError, WorkDir, code_version, load_model, run_config,
+                          same_run)
 from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
                                     hparams_for_epoch, make_optimizer, parameter_key, step_key,
                                     validation_key)
@@ -144,7 +145,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                       "learning_rate": float(np.ravel(hparams.learning_rate)[0]),
                       "epoch_time_s": epoch_time, "scenes_per_s": scenes / epoch_time,
                       "step": int(np.max(state.step)), "compiles": compiles.count,
-                      "compile_time_s": compiles.seconds}
+                      "compile_time_s": compiles.seconds, "code": code_version()}
             if non_finite.any():
                 names = training.member_names or ("run",)
                 record["non_finite_steps"] = {name: int(v) for name, v in zip(names, non_finite)
