@@ -68,7 +68,7 @@ def shipped_record(scene: str, protocol: str, output: str, epochs: int,
             != (protocol, epochs, seed) or meta["model"]["num_edge_heads"] != 1):
         return None
     return {**meta["test_metrics"], "workdir": f"gst_jax/pretrained/{name}",
-            "train_time_s": meta.get("train_time_s")}
+            "train_time_s": meta.get("train_time_s"), "code": meta.get("code")}
 
 
 def park(workdir: Path, parked: Path) -> int | None:

@@ -51,7 +51,7 @@ def export(run_path: str | Path, name: str) -> Path:
         checkpointer.save((folder / "params").absolute(), run.params)
     meta = {**run_config(run.model_config, run.data_config, run.train_config),
             "epoch": run.epoch, "source": str(run.workdir.path), "test_metrics": metrics,
-            "train_time_s": run.workdir.training_time_s(),
+            "train_time_s": run.workdir.training_time_s(), "code": run.workdir.code_versions(),
             "check": {**CHECK, "aoe": check_aoe(run.model_config, run.params, run.data_config)}}
     (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     return folder
