@@ -71,23 +71,6 @@ def shipped_record(scene: str, protocol: str, output: str, epochs: int,
             "train_time_s": meta.get("train_time_s"), "code": meta.get("code")}
 
 
-def park(workdir: Path, parked: Path) -> int | None:
-    """Copy the run's config and newest checkpoint (with its checksum) to `parked`; returns
-    its epoch, or None when the run has no checkpoint yet."""
-    checkpoints = workdir / "checkpoints"
-    epochs = sorted(int(p.name) for p in checkpoints.glob("[0-9]*") if p.is_dir())
-    if not epochs:
-        return None
-    shutil.rmtree(parked, ignore_errors=True)
-    (parked / "checkpoints").mkdir(parents=True)
-    shutil.copy2(workdir / "config.json", parked / "config.json")
-    shutil.copytree(checkpoints / str(epochs[-1]), parked / "checkpoints" / str(epochs[-1]))
-    checksums = json.loads((checkpoints / "checksums.json").read_text())
-    (parked / "checkpoints" / "checksums.json").write_text(
-        json.dumps({str(epochs[-1]): checksums[str(epochs[-1])]}, indent=1))
-    return epochs[-1]
-
-
 def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output: str,
                    epochs: int, seed: int, train: bool,
                    train_options: tuple[str, ...] = ()) -> dict | None:
@@ -248,7 +231,7 @@ def main(argv: list[str] | None = None) -> None:
                 workdir = workdir_of(Path(args.runs), scene, args.protocol, args.output,
                                      args.epochs, seed)
                 if not (records / f"{workdir.name}.json").exists() and (
-                        epoch := park(workdir, records.parent / "resume" / workdir.name)):
+                        epoch := WorkDir(workdir).park(records.parent / "resume" / workdir.name)):
                     print(f"parked {workdir.name} after epoch {epoch}", file=sys.stderr)
         return
 

@@ -19,6 +19,7 @@ import functools
 import hashlib
 import json
 import os
+import shutil
 import subprocess
 import warnings
 from pathlib import Path
@@ -315,6 +316,24 @@ class WorkDir:
         if self.writes:
             lines = "".join(json.dumps(r) + "\n" for r in records)
             _write_atomically(self.metrics_path, lines)
+
+    def park(self, destination: Path) -> int | None:
+        """Copy the config and the newest checkpoint (with its checksum) to `destination`, a
+        work directory from which training continues on another machine; returns the
+        checkpoint's epoch, or None before the first checkpoint."""
+        checkpoints = self.path / "checkpoints"
+        epochs = sorted(int(p.name) for p in checkpoints.glob("[0-9]*") if p.is_dir())
+        if not epochs:
+            return None
+        latest = str(epochs[-1])
+        shutil.rmtree(destination, ignore_errors=True)
+        (destination / "checkpoints").mkdir(parents=True)
+        shutil.copy2(self.path / "config.json", destination / "config.json")
+        shutil.copytree(checkpoints / latest, destination / "checkpoints" / latest)
+        checksums = json.loads((checkpoints / "checksums.json").read_text())
+        (destination / "checkpoints" / "checksums.json").write_text(
+            json.dumps({latest: checksums[latest]}, indent=1))
+        return epochs[-1]
 
     def code_versions(self) -> list[str]:
         """The code versions that trained the run's epochs, in order of first use."""

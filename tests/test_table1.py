@@ -118,7 +118,7 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
             fit(ModelConfig(), zara1, config, tmp_path / "first")
     first_epoch = WorkDir(tmp_path / "first").read_metrics()
     parked = tmp_path / "results" / "resume" / "run"
-    assert TABLE1["park"](tmp_path / "first", parked) == 1
+    assert WorkDir(tmp_path / "first").park(parked) == 1
     assert sorted(p.name for p in (parked / "checkpoints").iterdir()) == ["1", "checksums.json"]
 
     shutil.copytree(parked, tmp_path / "second")            # the next sitting, another machine
