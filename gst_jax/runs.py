@@ -139,6 +139,17 @@ class Checkpointer:
         for later in [e for e in self._manager.all_steps() if e > epoch]:
             self._manager.delete(later)
 
+    def copy_latest(self, directory: Path) -> int | None:
+        """Copy the newest checkpoint, with its checksum, into a new checkpoint `directory`;
+        returns its epoch, or None when there is none."""
+        epoch = self.latest_epoch
+        if epoch is None:
+            return None
+        shutil.copytree(self._directory / str(epoch), directory / str(epoch))
+        (directory / "checksums.json").write_text(json.dumps(
+            {str(epoch): self._read_checksums()[str(epoch)]}, indent=1))
+        return epoch
+
     def close(self) -> None:
         self._manager.close()
 
@@ -318,22 +329,21 @@ class WorkDir:
             _write_atomically(self.metrics_path, lines)
 
     def park(self, destination: Path) -> int | None:
-        """Copy the config and the newest checkpoint (with its checksum) to `destination`, a
-        work directory from which training continues on another machine; returns the
-        checkpoint's epoch, or None before the first checkpoint."""
-        checkpoints = self.path / "checkpoints"
-        epochs = sorted(int(p.name) for p in checkpoints.glob("[0-9]*") if p.is_dir())
-        if not epochs:
+        """Copy the config and the newest checkpoint to `destination`, a work directory from
+        which training continues on another machine; returns the checkpoint's epoch, or None
+        before the first checkpoint."""
+        if not (self.path / "checkpoints").is_dir():
             return None
-        latest = str(epochs[-1])
-        shutil.rmtree(destination, ignore_errors=True)
-        (destination / "checkpoints").mkdir(parents=True)
-        shutil.copy2(self.path / "config.json", destination / "config.json")
-        shutil.copytree(checkpoints / latest, destination / "checkpoints" / latest)
-        checksums = json.loads((checkpoints / "checksums.json").read_text())
-        (destination / "checkpoints" / "checksums.json").write_text(
-            json.dumps({latest: checksums[latest]}, indent=1))
-        return epochs[-1]
+        checkpointer = self.checkpointer(create=False)
+        try:
+            if checkpointer.latest_epoch is None:
+                return None
+            shutil.rmtree(destination, ignore_errors=True)
+            epoch = checkpointer.copy_latest(destination / "checkpoints")
+            shutil.copy2(self.path / "config.json", destination / "config.json")
+            return epoch
+        finally:
+            checkpointer.close()
 
     def code_versions(self) -> list[str]:
         """The code versions that trained the run's epochs, in order of first use."""
