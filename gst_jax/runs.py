@@ -190,8 +190,11 @@ def code_version() -> str:
                                   "gst_jax"], capture_output=True, text=True, check=True,
                                  timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
-        from importlib.metadata import version
-        return f"gst_jax {version('gst_jax')}"
+        from importlib.metadata import PackageNotFoundError, version
+        try:
+            return f"gst_jax {version('gst_jax')}"
+        except PackageNotFoundError:                # a copied source tree on PYTHONPATH
+            return "gst_jax (source tree without git)"
     return commit + ("+dirty" if changes else "")
 
 

@@ -257,6 +257,15 @@ def test_training_steps_are_seeded_size_packed_and_cover_every_window():
     other = list(data.training_batches(windows, batch_size=16, seed=3, epoch=2))
     assert [_step_windows(s) for s in steps] == [_step_windows(s) for s in again]
     assert _step_windows(steps[0]) != _step_windows(other[0])
+    # On a GPU: the same steps, each one micro-batch padded to the set's largest window.
+    largest = data.bucket_size(max(w.num_observed for w in windows.windows),
+                               data.TRAINING_BUCKETS)
+    one_batch = list(data.training_batches(windows, batch_size=16, seed=3, epoch=1,
+                                           one_micro_batch=True))
+    assert [sorted(_step_windows(s)) for s in one_batch] == [sorted(_step_windows(s))
+                                                              for s in steps]
+    assert {b.shape[::2] + b.predicted_slots.shape[1:] for s in one_batch
+            for b in s.micro_batches} == {(16, largest, largest)}
 
 
 def test_evaluation_batches_respect_the_edge_budget():

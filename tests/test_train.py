@@ -100,9 +100,10 @@ def test_loss_goes_down_on_a_fixed_batch(fixed_step):
 
 
 def test_a_packed_step_equals_the_same_windows_in_one_padded_batch():
-    """docs/MODEL.md 3: micro-batches padded to their own buckets, their gradients summed,
-    give the loss and gradients of the same windows, with the same random draws (rotation,
-    Gumbel noise, dropout), computed in one batch padded to the largest."""
+    """docs/MODEL.md 3: micro-batches padded to their own buckets, their gradients summed
+    (or, as on a GPU, one micro-batch padded beyond the largest), give the loss and gradients
+    of the same windows, with the same random draws (rotation, Gumbel noise, dropout),
+    computed in one batch padded to the largest."""
     small = list(data.load_split(DataConfig(scene="zara1"), "test").windows[:5])
     large = [w for w in data.load_split(DataConfig(scene="univ"), "test").windows
              if w.num_observed > data.SHARED_MICRO_BATCH_MAX and w.num_pedestrians <= 32][:3]
@@ -114,17 +115,23 @@ def test_a_packed_step_equals_the_same_windows_in_one_padded_batch():
         (8, 8, 8), (1, 32, 24), (1, 32, 24), (1, 32, 24)]
     assert any(w.num_observed < w.num_pedestrians for w in large)
     padded = data.PackedStep((data.pad_windows(windows, 32, 8, index),), 8)
+    # The GPU's packing: one micro-batch of observed pedestrians only, padded to 40 slots.
+    one_batch = data.pack_step(windows, index, shared_slots=8, pad_to=40)
+    assert [b.shape[::2] + b.predicted_slots.shape[1:] for b in one_batch.micro_batches] == [
+        (8, 40, 40)]
     step = make_train_step(MODEL)                        # rotation, dropout, soft samples
     params = create_train_state(MODEL, jax.random.key(0)).params
     hparams = hparams_for_epoch(MODEL, TrainConfig(), epoch=3)
-    (loss, grads), (loss_padded, grads_padded) = (
-        step.loss_and_grads(params, jax.random.key(1), s, hparams) for s in (packed, padded))
-    np.testing.assert_allclose(loss, loss_padded, rtol=1e-5)
-    flat, flat_padded = (np.concatenate([np.ravel(g) for g in jax.tree.leaves(t)])
-                         for t in (grads, grads_padded))
-    assert np.linalg.norm(flat - flat_padded) <= 1e-5 * np.linalg.norm(flat_padded)
-    for leaf, leaf_padded in zip(jax.tree.leaves(grads), jax.tree.leaves(grads_padded)):
-        np.testing.assert_allclose(leaf, leaf_padded, rtol=1e-4, atol=1e-7)
+    (loss, grads), (loss_one, grads_one), (loss_padded, grads_padded) = (
+        step.loss_and_grads(params, jax.random.key(1), s, hparams)
+        for s in (packed, one_batch, padded))
+    for loss_, grads_ in ((loss, grads), (loss_one, grads_one)):
+        np.testing.assert_allclose(loss_, loss_padded, rtol=1e-5)
+        flat, flat_padded = (np.concatenate([np.ravel(g) for g in jax.tree.leaves(t)])
+                             for t in (grads_, grads_padded))
+        assert np.linalg.norm(flat - flat_padded) <= 1e-5 * np.linalg.norm(flat_padded)
+        for leaf, leaf_padded in zip(jax.tree.leaves(grads_), jax.tree.leaves(grads_padded)):
+            np.testing.assert_allclose(leaf, leaf_padded, rtol=1e-4, atol=1e-7)
     # The draws are per window: another key gives another loss.
     other, _ = step.loss_and_grads(params, jax.random.key(2), packed, hparams)
     assert abs(float(other) - float(loss)) > 1e-4

@@ -80,22 +80,30 @@ def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int
 
 
 def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int = 0,
-                     epoch: int = 0, slots_multiple: int = 1) -> Iterator[PackedStep]:
+                     epoch: int = 0, slots_multiple: int = 1,
+                     one_micro_batch: bool = False) -> Iterator[PackedStep]:
     """One packed step per optimiser step: shuffled windows taken `batch_size` at a time.
 
     As in the release, a step averages `batch_size` randomly drawn scenes (the last step of
     an epoch fewer). The order is a function of (seed, epoch) only, so a resumed run sees
     the same steps. slots_multiple: every micro-batch holds a multiple of this many scenes
-    (the devices it is split over; see `pack_step`).
+    (the devices it is split over; see `pack_step`). one_micro_batch: every step in one
+    micro-batch padded to the set's largest window (a GPU, where a call costs more than
+    padding): one program per run.
     """
+    pad_to = None
+    if one_micro_batch and len(window_set):
+        pad_to = bucket_size(max(w.num_observed for w in window_set.windows), TRAINING_BUCKETS)
     order = np.random.default_rng([seed, epoch]).permutation(len(window_set))
     for start in range(0, len(order), batch_size):
         chosen = order[start:start + batch_size]
-        yield pack_step([window_set[i] for i in chosen], chosen, batch_size, slots_multiple)
+        yield pack_step([window_set[i] for i in chosen], chosen, batch_size, slots_multiple,
+                        pad_to=pad_to)
 
 
 def pack_step(windows: Sequence[Window], window_index: Sequence[int],
-              shared_slots: int = 16, slots_multiple: int = 1) -> PackedStep:
+              shared_slots: int = 16, slots_multiple: int = 1, *,
+              pad_to: int | None = None) -> PackedStep:
     """A step's windows in micro-batches: those of up to SHARED_MICRO_BATCH_MAX observed
     pedestrians together in one batch of `shared_slots` scenes padded to the largest of them,
     each larger window alone, padded to its TRAINING_BUCKETS size. The programs of an epoch
@@ -108,7 +116,14 @@ def pack_step(windows: Sequence[Window], window_index: Sequence[int],
     slots_multiple > 1 (scenes split over that many devices): every micro-batch holds a
     multiple of it; the larger windows go in groups of that many, by size, each group
     padded to the bucket of its largest.
+
+    pad_to: instead, all windows in one micro-batch of `pad_to` slots, all of them predicted.
     """
+    if pad_to is not None:
+        slots = _round_up(max(shared_slots, len(windows)), slots_multiple)
+        return PackedStep((pad_windows(windows, pad_to, slots, window_index,
+                                       predicted_slots=pad_to, observed_only=True),),
+                          len(windows))
     small = [k for k, w in enumerate(windows) if w.num_observed <= SHARED_MICRO_BATCH_MAX]
     large = [k for k, w in enumerate(windows) if w.num_observed > SHARED_MICRO_BATCH_MAX]
 

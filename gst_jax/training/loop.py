@@ -115,7 +115,8 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
             loss_sum, non_finite, scenes = np.zeros(members), np.zeros(members, int), 0.0
             steps = data.training_batches(train_set, batch_size=train_config.batch_size,
                                           seed=train_config.seed, epoch=epoch,
-                                          slots_multiple=train_step.slots_multiple)
+                                          slots_multiple=train_step.slots_multiple,
+                                          one_micro_batch=train_step.one_micro_batch)
             with count_compiles() as compiles:
                 for step, packed in enumerate(steps):
                     keys = train_step.place(training.step_keys(epoch, step))

@@ -1,10 +1,11 @@
 """The training loss and the training step over a size-packed step (docs/MODEL.md 3).
 
 A step averages the loss of its windows. They come in micro-batches, each padded only to
-its own size bucket (`gst_jax.data.pack_step`); the gradients of the micro-batches are
-summed, each window weighted 1 / (windows in the step), then Adam updates once. Every
-window's random draws depend on its key and its own coordinates only (`gst_jax.noise`), so
-the step's loss and gradients are those of the same windows computed in one padded batch.
+its own size bucket (`gst_jax.data.pack_step`; on a GPU all in one); the gradients of the
+micro-batches are summed, each window weighted 1 / (windows in the step), then Adam updates
+once. Every window's random draws depend on its key and its own coordinates only
+(`gst_jax.noise`), so the step's loss and gradients are those of the same windows computed
+in one padded batch.
 """
 
 from __future__ import annotations
@@ -111,6 +112,13 @@ class TrainStep:
     def slots_multiple(self) -> int:
         """Micro-batches hold a multiple of this many scenes (those split over devices)."""
         return self.devices.count if self.devices is not None and not self.members else 1
+
+    @property
+    def one_micro_batch(self) -> bool:
+        """Whether steps should come as one micro-batch padded to the largest window: on a
+        GPU a call costs more than the padding; on a CPU the size buckets are faster."""
+        devices = self.devices.mesh.devices.flat if self.devices is not None else jax.devices()
+        return next(iter(devices)).platform != "cpu"
 
     def __call__(self, state: TrainState, key: jax.Array, step: PackedStep, hparams: HParams
                  ) -> tuple[TrainState, dict]:
