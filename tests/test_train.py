@@ -120,6 +120,7 @@ def test_a_packed_step_equals_the_same_windows_in_one_padded_batch():
     assert [b.shape[::2] + b.predicted_slots.shape[1:] for b in one_batch.micro_batches] == [
         (8, 40, 40)]
     step = make_train_step(MODEL)                        # rotation, dropout, soft samples
+    assert not step.one_micro_batch                      # a CPU trains on size buckets
     params = create_train_state(MODEL, jax.random.key(0)).params
     hparams = hparams_for_epoch(MODEL, TrainConfig(), epoch=3)
     (loss, grads), (loss_one, grads_one), (loss_padded, grads_padded) = (
