@@ -14,16 +14,19 @@ A model is named by a work directory (or one of its `checkpoints/<epoch>`), by
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
 import json
 import os
 import shutil
+import signal
 import subprocess
+import threading
 import warnings
 from pathlib import Path
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Iterator, NamedTuple, Sequence
 
 import jax
 import numpy as np
@@ -74,20 +77,22 @@ class Checkpointer:
         return self._manager.latest_step()
 
     def save(self, epoch: int, state: Any, config: dict, records: list) -> None:
+        """Save and checksum `epoch`; a Ctrl-C meanwhile takes effect once it is complete."""
         if not all(bool(np.all(np.isfinite(leaf))) for leaf in jax.tree.leaves(state)
                    if np.issubdtype(leaf.dtype, np.floating)):
             raise RunError(f"refusing to save a non-finite training state (epoch {epoch})")
-        self._manager.save(epoch, args=ocp.args.Composite(
-            state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),
-            metrics=ocp.args.JsonSave(records)))
-        self._manager.wait_until_finished()
-        if jax.process_index() != 0:            # the checksums are written once
-            return
-        checksums = self._read_checksums()
-        checksums[str(epoch)] = self._checksum(epoch)
-        kept = {str(e) for e in self._manager.all_steps()}
-        _write_atomically(self._checksums, json.dumps(
-            {e: c for e, c in checksums.items() if e in kept}, indent=1))
+        with _interrupts_deferred():
+            self._manager.save(epoch, args=ocp.args.Composite(
+                state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),
+                metrics=ocp.args.JsonSave(records)))
+            self._manager.wait_until_finished()
+            if jax.process_index() != 0:            # the checksums are written once
+                return
+            checksums = self._read_checksums()
+            checksums[str(epoch)] = self._checksum(epoch)
+            kept = {str(e) for e in self._manager.all_steps()}
+            _write_atomically(self._checksums, json.dumps(
+                {e: c for e, c in checksums.items() if e in kept}, indent=1))
 
     def restore(self, like_state: Any, epoch: int | None = None, *,
                 fall_back: bool = False) -> Restored:
@@ -196,6 +201,24 @@ def code_version() -> str:
         except PackageNotFoundError:                # a copied source tree on PYTHONPATH
             return "gst_jax (source tree without git)"
     return commit + ("+dirty" if changes else "")
+
+
+@contextlib.contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """Hold back SIGINT (Ctrl-C, `timeout -s INT`) inside the block and raise it at its end:
+    interrupted inside orbax's save, the main thread would leave orbax's writer threads to
+    fail at exit with a traceback and a half-written checkpoint."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = []
+    previous = signal.signal(signal.SIGINT, lambda *_: received.append(True))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        raise KeyboardInterrupt
 
 
 def _write_atomically(path: Path, text: str) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 import signal
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import orbax.checkpoint as ocp
 import pytest
 
 from gst_jax import data
@@ -270,6 +272,26 @@ def test_a_resumed_run_may_change_its_checkpoint_cadence(tmp_path, monkeypatch, 
     assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir() if p.is_dir()) == \
         ["1", "2", "3"]
     assert json.loads((tmp_path / "config.json").read_text())["train"]["checkpoint_every"] == 5
+
+
+def test_a_ctrl_c_during_a_checkpoint_save_takes_effect_once_it_is_complete(tmp_path,
+                                                                            monkeypatch):
+    state = create_train_state(MODEL, jax.random.key(0))
+    finish = ocp.CheckpointManager.wait_until_finished
+
+    def interrupted_while_writing(manager):
+        os.kill(os.getpid(), signal.SIGINT)
+        finish(manager)
+
+    monkeypatch.setattr(ocp.CheckpointManager, "wait_until_finished", interrupted_while_writing)
+    checkpointer = Checkpointer(tmp_path / "checkpoints")
+    with pytest.raises(KeyboardInterrupt):
+        checkpointer.save(1, state, {"run": "a"}, [{"epoch": 1}])
+    monkeypatch.undo()
+    restored = checkpointer.restore(state)             # complete, and its checksum matches
+    checkpointer.close()
+    assert (restored.epoch, restored.config, restored.records) == (1, {"run": "a"},
+                                                                   [{"epoch": 1}])
 
 
 def _damage(folder: Path, how: str) -> None:
