@@ -185,7 +185,7 @@ class Checkpointer:
 def code_version() -> str:
     """The git commit of this gst_jax checkout ('+dirty' when gst_jax/ has uncommitted
     changes), recorded with every epoch so that a result names the code that trained it;
-    'gst_jax <version>' outside a git checkout."""
+    'gst_jax <version>' outside a git checkout (a bare source tree says so)."""
     root = Path(__file__).resolve().parents[1]
     git = ["git", "-C", str(root)]
     try:
