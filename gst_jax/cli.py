@@ -97,8 +97,8 @@ def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False) -> 
     group = parser.add_argument_group("data")
     default = "the run's own" if of_run else None
     group.add_argument("--scene", default=None if of_run else "eth", choices=SCENES,
-                       help="dataset: an ETH/UCY scene or a TrajNet++ crowd "
-                            f"(default: {default or 'eth'})")
+                       help="dataset: an ETH/UCY scene, a TrajNet++ crowd, or crowd: all "
+                            f"seven, each file split as in its scene (default: {default or 'eth'})")
     group.add_argument("--protocol", default=None if of_run else "paper", choices=PROTOCOLS,
                        help="paper: the release's per-file temporal 80/20 split; paper-val: the "
                             "same with a validation set carved from the end of each file's "

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from gst_jax import load_pretrained, pretrained
-from gst_jax.config import DataConfig
+from gst_jax.config import ETH_UCY_SCENES, TRAJNET_SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.pretrained import export
 from gst_jax.pretrained.export import check_aoe
+from gst_jax.runs import RunError, WorkDir
+from gst_jax.training.loop import fit
 
 
 def test_at_least_one_model_is_shipped():
@@ -19,3 +24,21 @@ def test_pretrained_model_reproduces_its_recorded_aoe(name):
     config, params = load_pretrained(name)
     aoe = check_aoe(config, params, DataConfig(**meta["data"]))
     assert abs(aoe - meta["check"]["aoe"]) < 1e-3
+
+
+def test_the_general_model_is_trained_on_crowd_and_shipped_with_its_score_on_every_scene(
+        tmp_path, monkeypatch):
+    run = tmp_path / "crowd-run"
+    fit(ModelConfig(), DataConfig(scene="crowd"), TrainConfig(
+        epochs=1, batch_size=4, max_train_windows=4, checkpoint_every=1), run)
+    monkeypatch.setattr(export, "ROOT", tmp_path / "shipped")
+    with pytest.raises(RunError, match="no test evaluation on eth at epoch 1"):
+        export.export(run, "crowd_d")
+
+    scenes = ETH_UCY_SCENES + TRAJNET_SCENES
+    for k, scene in enumerate(scenes):           # as `experiments/crowd.py --train` records them
+        WorkDir(run).write_evaluation(DataConfig(scene=scene), "test", 1, {"aoe": k}, "")
+    meta = json.loads((export.export(run, "crowd_d") / "meta.json").read_text())
+    assert meta["data"]["scene"] == "crowd"
+    assert {scene: m["aoe"] for scene, m in meta["test_metrics_per_scene"].items()} == {
+        scene: k for k, scene in enumerate(scenes)}

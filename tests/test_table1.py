@@ -133,3 +133,31 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
     TABLE1["main"](["--scenes", "hotel", "--runs", str(tmp_path / "runs"), "--workdir",
                     str(tmp_path / "results")])
     assert not parked.exists()
+
+
+CROWD = runpy.run_path(str(Path(__file__).parents[1] / "experiments" / "crowd.py"))
+
+
+def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_its_run(
+        tmp_path):
+    _fake_run(tmp_path / "runs", "crowd", 1000, 0.40, [600.0])        # its union test split
+    workdir = TABLE1["workdir_of"](tmp_path / "runs", "crowd", "paper", "deterministic", 200, 1000)
+    for k, scene in enumerate(CROWD["SCENES"]):
+        if scene != "wildtrack":                                  # not evaluated there yet
+            (workdir / "eval" / f"{scene}-paper-test-e200.json").write_text(json.dumps(
+                {"aoe": 0.1 * (k + 1), "foe": 0.2 * (k + 1), "pedestrians": k + 1,
+                 "cv_aoe": 0.5, "cv_foe": 1.0}))
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.25, [60.0])         # hotel's own model
+    argv = ["--runs", str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")]
+    CROWD["main"](argv)
+    table = (tmp_path / "out" / "crowd.md").read_text()
+    assert "| hotel | 2 | 0.200 / 0.400 | 0.250 / 0.500 | 0.500 / 1.000 |" in table
+    assert "| lcas | 6 | 0.600 / 1.200 | - | 0.500 / 1.000 |" in table
+    assert "| wildtrack | - | - | - | - |" in table
+    assert "| all seven | 7 | 0.400 / 0.800 | - | 0.500 / 1.000 |" in table
+    assert "Train time 10 min" in table
+
+    for path in sorted((tmp_path / "runs").rglob("*"), reverse=True):   # the runs are lost
+        path.unlink() if path.is_file() else path.rmdir()
+    CROWD["main"](argv)
+    assert (tmp_path / "out" / "crowd.md").read_text() == table

@@ -5,8 +5,9 @@
 - `paper-val`: the same test split; the last `val_fraction` of each file's train windows
   become validation, and train windows that share any frame with them are dropped.
 - `loo`: leave-one-scene-out (Social-GAN split, `data/eth_ucy/loo/splits.json`).
-TrajNet++ crowds (`lcas`, `wildtrack`) and your own files (`DataConfig.data`) follow
-`paper` / `paper-val` on each file; the split `all` is every window of every file.
+TrajNet++ crowds (`lcas`, `wildtrack`), `crowd` (all seven scenes' files) and your own files
+(`DataConfig.data`) follow `paper` / `paper-val` on each file; the split `all` is every window
+of every file.
 """
 
 from __future__ import annotations
@@ -16,13 +17,14 @@ import glob
 import json
 from pathlib import Path
 
-from gst_jax.config import MODEL_HZ, DataConfig, ETH_UCY_SCENES, PROTOCOLS, SCENES
+from gst_jax.config import (CROWD, ETH_UCY_SCENES, MODEL_HZ, PROTOCOLS, SCENES, TRAJNET_SCENES,
+                            DataConfig)
 from gst_jax.data.readers import DataError, read_tracks, to_model_rate
 from gst_jax.data.windows import Window, WindowSet, cut_windows, kept
 
 SPLITS = ("train", "val", "test", "all")
 TRACK_SUFFIXES = (".txt", ".ndjson")
-TRAJNET_FILES = {"lcas": "lcas.ndjson", "wildtrack": "wildtrack.ndjson"}
+TRAJNET_FILES = {scene: f"{scene}.ndjson" for scene in TRAJNET_SCENES}
 
 
 def default_data_dir() -> Path:
@@ -31,7 +33,10 @@ def default_data_dir() -> Path:
 
 
 def scene_files(data_dir: Path, scene: str) -> list[Path]:
-    """The raw files of a scene for the paper protocol (univ has two)."""
+    """The raw files of a scene for the paper protocol (univ has two; crowd all of them)."""
+    if scene == CROWD:
+        return [path for one in ETH_UCY_SCENES + TRAJNET_SCENES
+                for path in scene_files(data_dir, one)]
     if scene in TRAJNET_FILES:
         return [data_dir / "trajnetpp" / TRAJNET_FILES[scene]]
     files = sorted((data_dir / "eth_ucy" / "raw" / scene).glob("*.txt"))

@@ -39,6 +39,9 @@ def command(args) -> None:
         m = meta.get("test_metrics") or {}
         print(f"{name}: epoch {meta['epoch']}, AOE {m.get('aoe', float('nan')):.3f} "
               f"FOE {m.get('foe', float('nan')):.3f} ({m.get('protocol', 'not evaluated')})")
+        if per_scene := meta.get("test_metrics_per_scene"):      # the general model
+            print("  per scene AOE / FOE: " + ", ".join(
+                f"{scene} {m['aoe']:.3f} / {m['foe']:.3f}" for scene, m in per_scene.items()))
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -10,10 +11,10 @@ import jax
 import orbax.checkpoint as ocp
 
 from gst_jax import data
-from gst_jax.config import DataConfig, ModelConfig
+from gst_jax.config import CROWD, ETH_UCY_SCENES, TRAJNET_SCENES, DataConfig, ModelConfig
 from gst_jax.evaluation import evaluate_params
 from gst_jax.pretrained import ROOT, load_meta, load_pretrained
-from gst_jax.runs import load_run, run_config
+from gst_jax.runs import RunError, load_run, run_config
 
 # The fixed-key check stored with every model: AOE on the first windows of its test split.
 CHECK = {"windows": 4, "samples": 2, "seed": 0}
@@ -43,6 +44,14 @@ def export(run_path: str | Path, name: str) -> Path:
     """Copy a trained run's latest parameters and its evaluation into the package."""
     run = load_run(run_path)
     metrics = run.workdir.read_evaluation(run.data_config, "test", run.epoch)
+    per_scene = {}
+    if run.data_config.scene == CROWD:    # the general model: its score on every scene
+        for scene in ETH_UCY_SCENES + TRAJNET_SCENES:
+            config = dataclasses.replace(run.data_config, scene=scene)
+            per_scene[scene] = run.workdir.read_evaluation(config, "test", run.epoch)
+            if per_scene[scene] is None:
+                raise RunError(f"{run.workdir.path} has no test evaluation on {scene} at epoch "
+                               f"{run.epoch}: run `python experiments/crowd.py --train` first")
     folder = ROOT / name
     if folder.exists():
         shutil.rmtree(folder)
@@ -51,6 +60,7 @@ def export(run_path: str | Path, name: str) -> Path:
         checkpointer.save((folder / "params").absolute(), run.params)
     meta = {**run_config(run.model_config, run.data_config, run.train_config),
             "epoch": run.epoch, "source": str(run.workdir.path), "test_metrics": metrics,
+            **({"test_metrics_per_scene": per_scene} if per_scene else {}),
             "train_time_s": run.workdir.training_time_s(), "code": run.workdir.code_versions(),
             "check": {**CHECK, "aoe": check_aoe(run.model_config, run.params, run.data_config)}}
     (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
