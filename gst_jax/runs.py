@@ -185,7 +185,8 @@ class Checkpointer:
 def code_version() -> str:
     """The git commit of this gst_jax checkout ('+dirty' when gst_jax/ has uncommitted
     changes), recorded with every epoch so that a result names the code that trained it;
-    'gst_jax <version>' outside a git checkout (a bare source tree says so)."""
+    outside a git checkout, $GST_JAX_CODE_VERSION where set (a tree copied to a cluster can
+    name the commit it was copied from), else 'gst_jax <version>' (a bare tree says so)."""
     root = Path(__file__).resolve().parents[1]
     git = ["git", "-C", str(root)]
     try:
@@ -195,6 +196,8 @@ def code_version() -> str:
                                   "gst_jax"], capture_output=True, text=True, check=True,
                                  timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
+        if named := os.environ.get("GST_JAX_CODE_VERSION"):
+            return named
         from importlib.metadata import PackageNotFoundError, version
         try:
             return f"gst_jax {version('gst_jax')}"

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -205,6 +206,16 @@ def test_validation_split_is_evaluated_during_training(tmp_path):
     # Every epoch names the code that trained it: this checkout's commit.
     assert WorkDir(tmp_path / "run").code_versions() == [code_version()]
     assert re.fullmatch(r"[0-9a-f]{10}(\+dirty)?|gst_jax \S+", code_version())
+
+
+def test_a_copied_source_tree_names_the_code_it_was_given(tmp_path):
+    shutil.copytree(Path(data.__file__).parents[1], tmp_path / "gst_jax",
+                    ignore=shutil.ignore_patterns("pretrained", "__pycache__"))
+    env = {**os.environ, "PYTHONPATH": str(tmp_path), "GST_JAX_CODE_VERSION": "8f72101f7e gpu"}
+    named = subprocess.run([sys.executable, "-c", "from gst_jax.runs import code_version; "
+                            "import gst_jax; print(code_version(), gst_jax.__file__)"],
+                           env=env, cwd=tmp_path, capture_output=True, text=True, check=True)
+    assert named.stdout.split() == ["8f72101f7e", "gpu", str(tmp_path / "gst_jax" / "__init__.py")]
 
 
 # --- faults: every kind ends with one metrics line per epoch and the parameters of an ---
