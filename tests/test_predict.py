@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import numpy as np
+import pytest
 
 import gst_jax
+from gst_jax import compiles
 from gst_jax.compiles import count_compiles
 from gst_jax.model import Controls
 from gst_jax.rollout import rollout
@@ -84,3 +88,28 @@ def test_predict_compiles_once_per_bucket():
     with count_compiles() as new_bucket:                       # the counter sees a new shape
         assert run(20, 2).positions.shape[3] == 24
     assert new_bucket.count >= 1
+
+
+def test_compiling_near_the_kernel_s_limit_on_memory_maps_warns_once(monkeypatch):
+    held = iter([40_000, 50_000, 60_000])               # maps after each compile; limit 65530
+    monkeypatch.setattr(compiles, "memory_maps", lambda: (next(held), 65530))
+    triple = jax.jit(lambda x: 3 * x)
+    with count_compiles() as counter:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            triple(np.ones(2))                          # 61 % of the limit: quiet
+        with pytest.warns(UserWarning, match=r"holds 50000 memory maps of the 65530 .* "
+                                             r"sudo sysctl -w vm.max_map_count=262144"):
+            triple(np.ones(3))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            triple(np.ones(4))                          # said once
+    assert counter.count == 3
+
+
+def test_memory_maps_are_read_from_the_kernel_on_linux():
+    maps = compiles.memory_maps()
+    if maps is None:
+        pytest.skip("not Linux")
+    held, limit = maps
+    assert 0 < held < limit
