@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import runpy
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -139,7 +140,7 @@ CROWD = runpy.run_path(str(Path(__file__).parents[1] / "experiments" / "crowd.py
 
 
 def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_its_run(
-        tmp_path):
+        tmp_path, monkeypatch):
     _fake_run(tmp_path / "runs", "crowd", 1000, 0.40, [600.0])        # its union test split
     workdir = TABLE1["workdir_of"](tmp_path / "runs", "crowd", "paper", "deterministic", 200, 1000)
     for k, scene in enumerate(CROWD["SCENES"]):
@@ -156,6 +157,18 @@ def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_i
     assert "| wildtrack | - | - | - | - |" in table
     assert "| all seven | 7 | 0.400 / 0.800 | - | 0.500 / 1.000 |" in table
     assert "Train time 10 min" in table
+
+    commands = []                        # --train evaluates it where it was not evaluated yet
+
+    def evaluate(command, check):
+        commands.append(command[1:])
+        (workdir / "eval" / f"{command[-1]}-paper-test-e200.json").write_text(json.dumps(
+            {"aoe": 0.9, "foe": 1.8, "pedestrians": 9, "cv_aoe": 0.5, "cv_foe": 1.0}))
+    monkeypatch.setattr(subprocess, "run", evaluate)
+    CROWD["main"]([*argv, "--train"])
+    assert commands == [["-m", "gst_jax.evaluate", str(workdir), "--scene", "wildtrack"]]
+    table = (tmp_path / "out" / "crowd.md").read_text()
+    assert "| wildtrack | 9 | 0.900 / 1.800 | - | 0.500 / 1.000 |" in table
 
     for path in sorted((tmp_path / "runs").rglob("*"), reverse=True):   # the runs are lost
         path.unlink() if path.is_file() else path.rmdir()
