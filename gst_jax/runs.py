@@ -210,8 +210,10 @@ def code_version() -> str:
 def _interrupts_deferred() -> Iterator[None]:
     """Hold back SIGINT (Ctrl-C, `timeout -s INT`) inside the block and raise it at its end:
     interrupted inside orbax's save, the main thread would leave orbax's writer threads to
-    fail at exit with a traceback and a half-written checkpoint."""
-    if threading.current_thread() is not threading.main_thread():
+    fail at exit with a traceback and a half-written checkpoint. A SIGINT the process ignores
+    (a background job of a script) stays ignored."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):
         yield
         return
     received = []

@@ -305,6 +305,16 @@ def test_a_ctrl_c_during_a_checkpoint_save_takes_effect_once_it_is_complete(tmp_
                                                                    [{"epoch": 1}])
 
 
+def test_an_ignored_ctrl_c_stays_ignored_during_a_checkpoint_save():
+    from gst_jax.runs import _interrupts_deferred
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)      # as in a script's background job
+    try:
+        with _interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _damage(folder: Path, how: str) -> None:
     """Truncate, or flip bytes in the middle of, the largest file of a checkpoint."""
     path = max((p for p in folder.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
