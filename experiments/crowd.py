@@ -27,10 +27,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 from table1 import run_scene_seed, train_flags, workdir_of  # noqa: E402
 
 from gst_jax import pretrained  # noqa: E402
-from gst_jax.config import CROWD, ETH_UCY_SCENES, TRAJNET_SCENES, DataConfig  # noqa: E402
+from gst_jax.config import CROWD, CROWD_SCENES, ETH_UCY_SCENES, DataConfig  # noqa: E402
 from gst_jax.runs import WorkDir  # noqa: E402
 
-SCENES = ETH_UCY_SCENES + TRAJNET_SCENES
+SCENES = CROWD_SCENES
 OWN_MODEL_SEED = 1000
 
 

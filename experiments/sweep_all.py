@@ -16,15 +16,14 @@ import json
 from pathlib import Path
 
 from gst_jax import cli, figures
-from gst_jax.config import ETH_UCY_SCENES, TRAJNET_SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import CROWD_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.training.members import DETECTION, plan_members, sweep_model_config
 from gst_jax.training.sweep import fit_sweep, format_markdown
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    scenes = ETH_UCY_SCENES + TRAJNET_SCENES
-    parser.add_argument("--scenes", nargs="+", default=list(scenes), choices=scenes,
+    parser.add_argument("--scenes", nargs="+", default=list(CROWD_SCENES), choices=CROWD_SCENES,
                         help="datasets to sweep (default: all seven)")
     parser.add_argument("--protocol", default="paper", help="split protocol (default: paper)")
     parser.add_argument("--edge-heads", default="0,1,2,4,8,16", type=cli.parse_edge_heads,

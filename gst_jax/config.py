@@ -13,10 +13,11 @@ from typing import Literal
 
 ETH_UCY_SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
 TRAJNET_SCENES = ("lcas", "wildtrack")
-# `crowd`: every file of the seven scenes above, each split as in its own scene, so that its
-# train split is the union of theirs (the general model a robot loads for an unknown crowd).
+# `crowd`: every file of these seven scenes, each split as in its own scene, so that its train
+# split is the union of theirs (the general model a robot loads for an unknown crowd).
+CROWD_SCENES = ETH_UCY_SCENES + TRAJNET_SCENES
 CROWD = "crowd"
-SCENES = ETH_UCY_SCENES + TRAJNET_SCENES + (CROWD,)
+SCENES = CROWD_SCENES + (CROWD,)
 PROTOCOLS = ("paper", "paper-val", "loo")
 OUTPUTS = ("deterministic", "gaussian")
 TEMPORAL_MODELS = ("lstm", "tcn")

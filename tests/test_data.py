@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gst_jax import data
-from gst_jax.config import DataConfig, ETH_UCY_SCENES, TRAJNET_SCENES
+from gst_jax.config import CROWD_SCENES, DataConfig, ETH_UCY_SCENES
 from gst_jax.data.stats import split_stats
 from gst_jax.data.windows import cut_windows
 
@@ -201,7 +201,7 @@ def test_trajnet_scenes_window_on_their_own_frame_step(scene, step):
 def test_crowd_is_every_scene_split_as_in_its_own_scene(protocol, split):
     crowd = data.load_split(DataConfig(scene="crowd", protocol=protocol), split)
     scenes = [data.load_split(DataConfig(scene=scene, protocol=protocol), split)
-              for scene in ETH_UCY_SCENES + TRAJNET_SCENES]
+              for scene in CROWD_SCENES]
     assert crowd.files == tuple(file for scene in scenes for file in scene.files)
     def starts(windows):
         return [(w.source, w.start_frame) for w in windows]

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from gst_jax import load_pretrained, pretrained
-from gst_jax.config import ETH_UCY_SCENES, TRAJNET_SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import CROWD_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.pretrained import export
 from gst_jax.pretrained.export import check_aoe
 from gst_jax.runs import RunError, WorkDir
@@ -35,10 +35,9 @@ def test_the_general_model_is_trained_on_crowd_and_shipped_with_its_score_on_eve
     with pytest.raises(RunError, match="no test evaluation on eth at epoch 1"):
         export.export(run, "crowd_d")
 
-    scenes = ETH_UCY_SCENES + TRAJNET_SCENES
-    for k, scene in enumerate(scenes):           # as `experiments/crowd.py --train` records them
+    for k, scene in enumerate(CROWD_SCENES):           # as `experiments/crowd.py --train` records them
         WorkDir(run).write_evaluation(DataConfig(scene=scene), "test", 1, {"aoe": k}, "")
     meta = json.loads((export.export(run, "crowd_d") / "meta.json").read_text())
     assert meta["data"]["scene"] == "crowd"
     assert {scene: m["aoe"] for scene, m in meta["test_metrics_per_scene"].items()} == {
-        scene: k for k, scene in enumerate(scenes)}
+        scene: k for k, scene in enumerate(CROWD_SCENES)}

@@ -17,8 +17,8 @@ import glob
 import json
 from pathlib import Path
 
-from gst_jax.config import (CROWD, ETH_UCY_SCENES, MODEL_HZ, PROTOCOLS, SCENES, TRAJNET_SCENES,
-                            DataConfig)
+from gst_jax.config import (CROWD, CROWD_SCENES, ETH_UCY_SCENES, MODEL_HZ, PROTOCOLS, SCENES,
+                            TRAJNET_SCENES, DataConfig)
 from gst_jax.data.readers import DataError, read_tracks, to_model_rate
 from gst_jax.data.windows import Window, WindowSet, cut_windows, kept
 
@@ -35,8 +35,7 @@ def default_data_dir() -> Path:
 def scene_files(data_dir: Path, scene: str) -> list[Path]:
     """The raw files of a scene for the paper protocol (univ has two; crowd all of them)."""
     if scene == CROWD:
-        return [path for one in ETH_UCY_SCENES + TRAJNET_SCENES
-                for path in scene_files(data_dir, one)]
+        return [path for one in CROWD_SCENES for path in scene_files(data_dir, one)]
     if scene in TRAJNET_FILES:
         return [data_dir / "trajnetpp" / TRAJNET_FILES[scene]]
     files = sorted((data_dir / "eth_ucy" / "raw" / scene).glob("*.txt"))

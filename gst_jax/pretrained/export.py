@@ -11,7 +11,7 @@ import jax
 import orbax.checkpoint as ocp
 
 from gst_jax import data
-from gst_jax.config import CROWD, ETH_UCY_SCENES, TRAJNET_SCENES, DataConfig, ModelConfig
+from gst_jax.config import CROWD, CROWD_SCENES, DataConfig, ModelConfig
 from gst_jax.evaluation import evaluate_params
 from gst_jax.pretrained import ROOT, load_meta, load_pretrained
 from gst_jax.runs import RunError, load_run, run_config
@@ -46,7 +46,7 @@ def export(run_path: str | Path, name: str) -> Path:
     metrics = run.workdir.read_evaluation(run.data_config, "test", run.epoch)
     per_scene = {}
     if run.data_config.scene == CROWD:    # the general model: its score on every scene
-        for scene in ETH_UCY_SCENES + TRAJNET_SCENES:
+        for scene in CROWD_SCENES:
             config = dataclasses.replace(run.data_config, scene=scene)
             per_scene[scene] = run.workdir.read_evaluation(config, "test", run.epoch)
             if per_scene[scene] is None:
