@@ -10,7 +10,7 @@ Each (scene, seed) is the work directory of `python -m gst_jax.train --scene S -
 paper protocol (`python -m gst_jax.evaluate`, 20 runs). Every finished evaluation is also kept
 as a small record in <results>/runs/<run name>.json (committed), so the table survives the loss
 of the work directories. Scenes without a finished evaluation are listed as missing, never
-filled in. Writes <results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
+filled in (an unfinished run shows the epoch it has reached). Writes <results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
 
 A run longer than one sitting (univ on two CPU cores) continues in the next one: `--park`
 copies the newest checkpoint of every unfinished run into <results>/resume/<run name>/, to be
@@ -104,15 +104,28 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
     return run_scene_seed(runs, records, scene, protocol, output, epochs, seed, train=False)
 
 
+def trained_epochs(runs: Path, records: Path, scene: str, protocol: str, output: str,
+                   epochs: int, seed: int) -> int | None:
+    """How far an unfinished run has got: the newest checkpoint of its work directory or of
+    its parked copy (None: not started)."""
+    workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
+    found = [WorkDir(path).latest_checkpoint() for path in (workdir, records.parent / "resume"
+                                                             / workdir.name)]
+    return max((epoch for epoch in found if epoch is not None), default=None)
+
+
 def summarize(scene: str, output: str, per_seed: list[dict], command: str,
-              baseline: dict) -> dict:
+              baseline: dict, in_progress: dict[int, int] | None = None) -> dict:
     """One table row: mean over seeds; spread = std over seeds (one seed: over its 20 runs).
     baseline: `constant_velocity_baseline` on the scene's test split, shown for every
-    scene, finished or not."""
+    scene, finished or not; in_progress: seed -> epochs trained, of a scene without a
+    finished run."""
     paper_aoe, paper_foe = PAPER[output][scene]
     row = {"scene": scene, "paper_aoe": paper_aoe, "paper_foe": paper_foe, "command": command,
            **baseline}
     if not per_seed:
+        if in_progress:
+            row["in_progress"] = {str(seed): epoch for seed, epoch in in_progress.items()}
         return row
     for name in ("aoe", "foe"):
         values = np.array([r[name] for r in per_seed])
@@ -168,7 +181,9 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
                 f"{r['foe']:.3f} ± {r['foe_spread']:.3f} | {release} | {paper}{kde} {cv} | "
                 f"{', '.join(map(str, r['seeds']))} | {minutes} min | `{r['command']}` |")
         else:
-            lines.append(f"| {r['scene']} | missing | missing | - | {paper}"
+            progress = "".join(f" (seed {seed} at epoch {epoch} of {epochs})"
+                               for seed, epoch in r.get("in_progress", {}).items())
+            lines.append(f"| {r['scene']} | missing{progress} | missing | - | {paper}"
                          f"{' - |' if gaussian else ''}"
                          f" {cv} | - | - | `{r['command']}` |")
     if len(rows) == len(ETH_UCY_SCENES):
@@ -245,7 +260,10 @@ def main(argv: list[str] | None = None) -> None:
             scene, args.protocol, args.output, args.epochs, seed_shown)])
         baseline = constant_velocity_baseline(
             data.load_split(DataConfig(scene=scene, protocol=args.protocol), "test"))
-        rows.append(summarize(scene, args.output, per_seed, command, baseline))
+        in_progress = {} if per_seed else {seed: epoch for seed in seeds if (
+            epoch := trained_epochs(Path(args.runs), records, scene, args.protocol, args.output,
+                                    args.epochs, seed)) is not None}
+        rows.append(summarize(scene, args.output, per_seed, command, baseline, in_progress))
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (
         "_p" if args.output == "gaussian" else "")
     out = Path(args.workdir)

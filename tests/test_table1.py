@@ -25,7 +25,10 @@ def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[f
     (workdir / "eval" / f"{scene}-paper-test-e200.json").write_text(json.dumps(result))
 
 
-def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_path):
+def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_path,
+                                                                         monkeypatch):
+    from gst_jax import pretrained
+    monkeypatch.setattr(pretrained, "available", lambda: ["eth_d"])    # the only one shipped
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
     _fake_run(tmp_path / "runs", "hotel", 1001, 0.30, [60.0])
     TABLE1["main"](["--scenes", "hotel", "eth", "univ", "--seeds", "1000,1001", "--runs",
@@ -118,9 +121,20 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
         with pytest.raises(_SittingEnds):
             fit(ModelConfig(), zara1, config, tmp_path / "first")
     first_epoch = WorkDir(tmp_path / "first").read_metrics()
-    parked = tmp_path / "results" / "resume" / "run"
+    # (a seed no shipped model has, so that the row cannot fall back to one)
+    name = TABLE1["workdir_of"](Path("runs"), "zara1", "paper", "deterministic", 200, 1003).name
+    parked = tmp_path / "results" / "resume" / name
     assert WorkDir(tmp_path / "first").park(parked) == 1
     assert sorted(p.name for p in (parked / "checkpoints").iterdir()) == ["1", "checksums.json"]
+
+    # Until it finishes, the table shows how far it got, and still no figure.
+    TABLE1["main"](["--scenes", "zara1", "--seeds", "1003", "--runs", str(tmp_path / "runs"),
+                    "--workdir", str(tmp_path / "results")])
+    [row] = json.loads((tmp_path / "results" / "table1.json").read_text())
+    assert row["in_progress"] == {"1003": 1} and "aoe" not in row
+    assert "| zara1 | missing (seed 1003 at epoch 1 of 200) | missing |" in (
+        tmp_path / "results" / "table1.md").read_text()
+    assert not (tmp_path / "runs").exists()                 # reading it created nothing
 
     shutil.copytree(parked, tmp_path / "second")            # the next sitting, another machine
     fit(ModelConfig(), zara1, config, tmp_path / "second")
