@@ -9,8 +9,9 @@ Each (scene, seed) is the work directory of `python -m gst_jax.train --scene S -
 `--train` runs or resumes that command where the run is incomplete, then evaluates it with the
 paper protocol (`python -m gst_jax.evaluate`, 20 runs). Every finished evaluation is also kept
 as a small record in <results>/runs/<run name>.json (committed), so the table survives the loss
-of the work directories. Scenes without a finished evaluation are listed as missing, never
-filled in (an unfinished run shows the epoch it has reached). Writes <results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
+of the work directories. Scenes without a finished evaluation are listed as missing (with
+the epoch an unfinished run has reached), never filled in. Writes
+<results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
 
 A run longer than one sitting (univ on two CPU cores) continues in the next one: `--park`
 copies the newest checkpoint of every unfinished run into <results>/resume/<run name>/, to be

@@ -363,10 +363,12 @@ class WorkDir:
         """Copy the config and the newest checkpoint to `destination`, a work directory from
         which training continues on another machine; returns the checkpoint's epoch, or None
         before the first checkpoint."""
-        if self.latest_checkpoint() is None:
+        if not (self.path / "checkpoints").is_dir():
             return None
         checkpointer = self.checkpointer(create=False)
         try:
+            if checkpointer.latest_epoch is None:
+                return None
             shutil.rmtree(destination, ignore_errors=True)
             epoch = checkpointer.copy_latest(destination / "checkpoints")
             shutil.copy2(self.path / "config.json", destination / "config.json")
