@@ -35,7 +35,7 @@ def test_the_general_model_is_trained_on_crowd_and_shipped_with_its_score_on_eve
     with pytest.raises(RunError, match="no test evaluation on eth at epoch 1"):
         export.export(run, "crowd_d")
 
-    for k, scene in enumerate(CROWD_SCENES):           # as `experiments/crowd.py --train` records them
+    for k, scene in enumerate(CROWD_SCENES):    # as `experiments/crowd.py --train` records them
         WorkDir(run).write_evaluation(DataConfig(scene=scene), "test", 1, {"aoe": k}, "")
     meta = json.loads((export.export(run, "crowd_d") / "meta.json").read_text())
     assert meta["data"]["scene"] == "crowd"
