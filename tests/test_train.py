@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import gc
+import io
 import json
 import os
 import re
@@ -19,6 +21,7 @@ import pytest
 
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.progress import Progress
 from gst_jax.runs import Checkpointer, RunError, WorkDir, code_version, load_run, run_name
 from gst_jax.training.loop import NonFiniteError, fit
 from gst_jax.training.state import create_train_state, hparams_for_epoch
@@ -313,6 +316,41 @@ def test_an_ignored_ctrl_c_stays_ignored_during_a_checkpoint_save():
             os.kill(os.getpid(), signal.SIGINT)
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+class _CtrlCInGarbageCollection(Progress):
+    """Progress that presses Ctrl-C once, in epoch 2, while Python runs a garbage-collection
+    callback (as JAX's `_xla_gc_callback`), where the KeyboardInterrupt is swallowed."""
+
+    def __init__(self):
+        super().__init__(io.StringIO())
+        self.pressed = False
+
+    def live(self, text: str) -> None:
+        super().live(text)
+        if text.startswith("epoch 2/") and not self.pressed:
+            self.pressed = True
+            gc.callbacks.append(self._press)
+            try:
+                gc.collect()
+            finally:
+                gc.callbacks.remove(self._press)
+
+    @staticmethod
+    def _press(phase, info):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(10):                 # the handler runs here, between bytecodes
+            pass
+
+
+def test_a_ctrl_c_swallowed_in_a_garbage_collection_callback_still_stops_training(
+        tmp_path, capsys, uninterrupted):
+    with pytest.raises(KeyboardInterrupt):
+        fit(MODEL, ZARA1, FAULT_RUN, tmp_path, progress=_CtrlCInGarbageCollection())
+    assert "Exception ignored" not in capsys.readouterr().err
+    assert [r["epoch"] for r in WorkDir(tmp_path).read_metrics()] == [1]
+    fit(MODEL, ZARA1, FAULT_RUN, tmp_path)
+    _assert_like_uninterrupted(tmp_path, uninterrupted)
 
 
 def _damage(folder: Path, how: str) -> None:

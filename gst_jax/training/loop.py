@@ -15,6 +15,7 @@ annealed 0.5 -> 0.03, random rotation, dropout 0.1) on `eth` under the paper pro
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
@@ -32,8 +33,8 @@ from gst_jax.evaluation import evaluate_params
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress, hms
-from gst_jax.runs import (Run, RunError, WorkDir, code_version, load_model, run_config,
-                          same_run)
+from gst_jax.runs import (Run, RunError, WorkDir, code_version, interrupts_noticed, load_model,
+                          run_config, same_run)
 from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
                                     hparams_for_epoch, make_optimizer, parameter_key, step_key,
                                     validation_key)
@@ -108,7 +109,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     total_steps = (train_config.epochs - start_epoch + 1) * steps_per_epoch
     members = len(training.seeds)
     run_start = time.perf_counter()
-    try:
+    with interrupts_noticed() as check_interrupt, contextlib.closing(checkpointer):
         for epoch in range(start_epoch, train_config.epochs + 1):
             hparams = train_step.place(training.hparams(epoch))
             epoch_start = time.perf_counter()
@@ -139,6 +140,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                         f"{scenes / max(time.perf_counter() - epoch_start, 1e-9):6.1f} scenes/s "
                         f"loss {float(np.mean(loss_sum)) / scenes:.4f} "
                         f"ETA {hms(seconds_per_step * (total_steps - done))}")
+                    check_interrupt()
 
             epoch_time = time.perf_counter() - epoch_start
             record = {"epoch": epoch, "loss": training.per_member(loss_sum / max(scenes, 1.0)),
@@ -158,8 +160,6 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                 checkpointer.save(epoch, state, config, records)
             workdir.append_metrics(record)
             progress.line(_format_record(record))
-    finally:
-        checkpointer.close()
     return state, records
 
 
