@@ -13,18 +13,24 @@ def hms(seconds: float) -> str:
 
 
 class Progress:
-    """`live` lines overwrite each other on a terminal (and are skipped elsewhere); `line`
+    """`live` lines overwrite each other on a terminal; in a log one of them, indented, every
+    `log_every_s` seconds (so a log shows where a long epoch is, or where it stalled); `line`
     always writes; `count` reports k of n items with their rate and an ETA."""
 
-    def __init__(self, stream: TextIO | None = None):
+    def __init__(self, stream: TextIO | None = None, log_every_s: float = 60.0):
         self.stream = stream or sys.stderr
         self.is_terminal = self.stream.isatty()
+        self.log_every_s = log_every_s
+        self._last_logged = time.perf_counter()
         self._reported_tenth = -1
 
     def live(self, text: str) -> None:
         if self.is_terminal:
             self.stream.write("\r" + text + "  ")
             self.stream.flush()
+        elif time.perf_counter() - self._last_logged >= self.log_every_s:
+            self._last_logged = time.perf_counter()
+            self.line("  " + text)
 
     def line(self, text: str) -> None:
         self.stream.write(("\r" if self.is_terminal else "") + text + "\n")
