@@ -288,8 +288,18 @@ def test_a_resumed_run_may_change_its_checkpoint_cadence(tmp_path, monkeypatch, 
     assert json.loads((tmp_path / "config.json").read_text())["train"]["checkpoint_every"] == 5
 
 
+@pytest.fixture
+def ctrl_c_enabled():
+    """Ctrl-C raises KeyboardInterrupt here, also where pytest was started in the background
+    of a script (which starts it with SIGINT ignored)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def test_a_ctrl_c_during_a_checkpoint_save_takes_effect_once_it_is_complete(tmp_path,
-                                                                            monkeypatch):
+                                                                            monkeypatch,
+                                                                            ctrl_c_enabled):
     state = create_train_state(MODEL, jax.random.key(0))
     finish = ocp.CheckpointManager.wait_until_finished
 
@@ -344,7 +354,7 @@ class _CtrlCInGarbageCollection(Progress):
 
 
 def test_a_ctrl_c_swallowed_in_a_garbage_collection_callback_still_stops_training(
-        tmp_path, capsys, uninterrupted):
+        tmp_path, capsys, uninterrupted, ctrl_c_enabled):
     with pytest.raises(KeyboardInterrupt):
         fit(MODEL, ZARA1, FAULT_RUN, tmp_path, progress=_CtrlCInGarbageCollection())
     assert "Exception ignored" not in capsys.readouterr().err
