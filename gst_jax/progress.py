@@ -28,8 +28,8 @@ class Progress:
         if self.is_terminal:
             self.stream.write("\r" + text + "  ")
             self.stream.flush()
-        elif time.perf_counter() - self._last_logged >= self.log_every_s:
-            self._last_logged = time.perf_counter()
+        elif (now := time.perf_counter()) - self._last_logged >= self.log_every_s:
+            self._last_logged = now
             self.line("  " + text)
 
     def line(self, text: str) -> None:
