@@ -12,6 +12,26 @@ def hms(seconds: float) -> str:
     return f"{seconds // 3600:d}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
 
 
+class StepClock:
+    """An ETA for the steps left from the seconds a step takes once compiled: the time since
+    the first step, less the compiling since, per step. The first step (tracing, compiling,
+    warm-up: minutes on a GPU) is left out; projected onto every step it made the first
+    ETAs hundreds of hours long."""
+
+    def __init__(self):
+        self._first: tuple[float, float, int] | None = None  # time, compile seconds, steps
+
+    def eta(self, steps_done: int, steps_left: int, compile_seconds: float) -> str:
+        """`H:MM:SS`, or `--` at the first step. compile_seconds: all the run's so far."""
+        now = time.perf_counter()
+        if self._first is None:
+            self._first = (now, compile_seconds, steps_done)
+            return "--"
+        started, compiled, steps = self._first
+        per_step = max(now - started - (compile_seconds - compiled), 0.0) / (steps_done - steps)
+        return hms(per_step * steps_left)
+
+
 class Progress:
     """`live` lines overwrite each other on a terminal; in a log one of them, indented, every
     `log_every_s` seconds (so a log shows where a long epoch is, or where it stalled); `line`

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import gc
 import io
 import json
@@ -206,6 +207,9 @@ def test_validation_split_is_evaluated_during_training(tmp_path):
                .splitlines()]
     assert [r["epoch"] for r in records] == [1, 2]
     assert all(r["val_aoe"] > 0 and r["val_foe"] >= r["val_aoe"] * 0.5 for r in records)
+    finished = [datetime.datetime.strptime(r["finished_at"], "%Y-%m-%dT%H:%M:%SZ")
+                for r in records]
+    assert finished == sorted(finished)
     # Every epoch names the code that trained it: this checkout's commit.
     assert WorkDir(tmp_path / "run").code_versions() == [code_version()]
     assert re.fullmatch(r"[0-9a-f]{10}(\+dirty)?|gst_jax \S+", code_version())

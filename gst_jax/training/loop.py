@@ -32,7 +32,7 @@ from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import evaluate_params
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
-from gst_jax.progress import Progress, hms
+from gst_jax.progress import Progress, StepClock
 from gst_jax.runs import (Run, RunError, WorkDir, code_version, interrupts_noticed, load_model,
                           run_config, same_run)
 from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
@@ -108,7 +108,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     steps_per_epoch = math.ceil(len(train_set) / train_config.batch_size)
     total_steps = (train_config.epochs - start_epoch + 1) * steps_per_epoch
     members = len(training.seeds)
-    run_start = time.perf_counter()
+    clock, compile_seconds = StepClock(), 0.0  # compile_seconds: those of earlier epochs
     with interrupts_noticed() as check_interrupt, contextlib.closing(checkpointer):
         for epoch in range(start_epoch, train_config.epochs + 1):
             hparams = train_step.place(training.hparams(epoch))
@@ -134,15 +134,16 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                     non_finite += ~finite
                     scenes += packed.num_scenes
                     done = (epoch - start_epoch) * steps_per_epoch + step + 1
-                    seconds_per_step = (time.perf_counter() - run_start) / done
+                    eta = clock.eta(done, total_steps - done, compile_seconds + compiles.seconds)
                     progress.live(
                         f"epoch {epoch}/{train_config.epochs} step {step + 1}/{steps_per_epoch} "
                         f"{scenes / max(time.perf_counter() - epoch_start, 1e-9):6.1f} scenes/s "
                         f"loss {float(np.mean(loss_sum)) / scenes:.4f} "
-                        f"ETA {hms(seconds_per_step * (total_steps - done))}")
+                        f"ETA {eta}")
                     check_interrupt()
 
             epoch_time = time.perf_counter() - epoch_start
+            compile_seconds += compiles.seconds
             record = {"epoch": epoch, "loss": training.per_member(loss_sum / max(scenes, 1.0)),
                       "tau": float(np.ravel(hparams.controls.tau)[0]),
                       "learning_rate": float(np.ravel(hparams.learning_rate)[0]),
@@ -155,6 +156,9 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                                               if v}
             if after_epoch is not None:
                 record.update(after_epoch(epoch, state))
+            # Wall-clock time, so that a log shows time spent between epochs (a stall, a slow
+            # checkpoint) that epoch_time_s does not.
+            record["finished_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             records.append(record)
             if epoch % train_config.checkpoint_every == 0 or epoch == train_config.epochs:
                 checkpointer.save(epoch, state, config, records)
