@@ -4,7 +4,8 @@ Run it with the release's Python (a venv with torch; `benchmarks/release.py` say
 a copy of the release), from anywhere:
 
     OMP_NUM_THREADS=1 RELEASE_PY experiments/release_train.py --release-dir DIR \
-        --keep results/resume/release-zara2-p-seed1000 -- --dataset zara2 <run/train_sparse.sh flags>
+        --flush-denormal --keep results/resume/release-zara2-p-seed1000 \
+        -- --dataset zara2 <the other flags of run/train_sparse.sh>
 
 Everything after `--` goes to the release's argument parser as in its `run/train_sparse.sh`
 (drop `--deterministic` for GST (P)). The release saves `epoch_N.pt` (model and Adam state)
@@ -14,8 +15,10 @@ learning-rate and temperature schedules set to that epoch, the epoch loop starti
 torch and numpy reseeded with seed + N (the release saves no RNG state, so a resumed run is a
 different draw of the same training, not a replay). `--keep DIR` copies every new checkpoint
 there (only the newest is kept) and restores from it when the release's own folder is gone, so
-a training can outlive the machine it started on. Nothing of the release is copied here: its
-module is imported and four of its names are wrapped.
+a training can outlive the machine it started on. `--flush-denormal`: see its help and
+`benchmarks/README.md`. Nothing of the release is copied here: its module is imported and the
+names it looks up for the model, the two schedules, saving, the result-folder check and the
+epoch loop's range are wrapped.
 """
 
 from __future__ import annotations
@@ -79,7 +82,8 @@ def main() -> None:
         print(f"{path} is the last epoch: nothing to train")
         return
     state = torch.load(path, weights_only=False) if path else None
-    print(f"resuming after epoch {epoch} from {path}" if path else "starting at epoch 1", flush=True)
+    print(f"resuming after epoch {epoch} from {path}" if path else "starting at epoch 1",
+          flush=True)
 
     def model(*a, **k):
         net = lstm_model.st_model(*a, **k)
@@ -110,7 +114,8 @@ def main() -> None:
                 old.unlink()
             shutil.copy2(filename, keep / Path(filename).name)
 
-    step_lr_class, temperature_class, torch_save = release.StepLR, release.Temp_Scheduler, torch.save
+    step_lr_class, temperature_class = release.StepLR, release.Temp_Scheduler
+    torch_save = torch.save
     release.st_model = model
     release.offset_error_square_full_partial = lstm_model.offset_error_square_full_partial
     release.StepLR = lr_schedule
