@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -58,8 +59,9 @@ def load_either(model: str, scene: str, output: str) -> tuple[Run, dict[str, np.
                              .shape[0], num_edge_heads=1, ghost=True, output=output)
         params = interop.params_from_torch(state_dict, num_edge_heads=1, ghost=True,
                                            config=config)
+        epoch = int(match[1]) if (match := re.search(r"epoch_(\d+)\.pt$", model)) else 0
         run = Run(name=model, model_config=config, data_config=DataConfig(scene=scene),
-                  train_config=TrainConfig(), params=params, epoch=200, workdir=None)
+                  train_config=TrainConfig(), params=params, epoch=epoch, workdir=None)
         return run, state_dict
     run = load_model(model)
     if (run.model_config.temporal, run.model_config.num_edge_heads) != ("lstm", 1):

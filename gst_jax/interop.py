@@ -40,7 +40,12 @@ def load_state_dict(source: str | Path | Mapping[str, Any]) -> dict[str, np.ndar
     except ImportError as error:
         raise ImportError(f"reading {source} needs torch; pass a dict of numpy arrays "
                           "instead (e.g. {k: v.numpy() for k, v in state_dict.items()})") from error
-    loaded = torch.load(str(source), map_location="cpu")
+    # The release's checkpoints also hold its epoch metrics as numpy scalars; allow those
+    # (and nothing else beyond tensors) rather than unpickling arbitrary objects.
+    numpy_scalars = [getattr(np, "_core", np.core).multiarray.scalar, np.dtype,
+                     type(np.dtype(np.float32)), type(np.dtype(np.float64))]
+    with torch.serialization.safe_globals(numpy_scalars):
+        loaded = torch.load(str(source), map_location="cpu", weights_only=True)
     if "model_state_dict" in loaded:  # the release's checkpoint layout
         loaded = loaded["model_state_dict"]
     return {name: value.detach().cpu().numpy() for name, value in loaded.items()}

@@ -83,6 +83,20 @@ def test_params_round_trip_through_torch_layout(fixture):
             np.testing.assert_array_equal(value, weights[name], err_msg=name)
 
 
+def test_reads_a_release_checkpoint_file(fixture, tmp_path):
+    """A checkpoint as the release's train.py saves it: tensors beside numpy-scalar metrics,
+    which torch's default weights-only loading refuses. Needs torch (skipped in CI)."""
+    torch = pytest.importorskip("torch")
+    weights = group(fixture, "n1_ghost/weights/")
+    torch.save({"epoch": 10, "model_state_dict": {k: torch.tensor(v) for k, v in weights.items()},
+                "train_loss": np.float64(-3.77), "val_aoe": np.float32(0.58)},
+               tmp_path / "epoch_10.pt")
+    loaded = interop.load_state_dict(tmp_path / "epoch_10.pt")
+    assert set(loaded) == set(weights)
+    for name, value in loaded.items():
+        np.testing.assert_array_equal(value, weights[name], err_msg=name)
+
+
 def test_node_dim_64_has_the_layout_the_release_scripts_train():
     """run/train_sparse.sh never passes its embedding_size=32, so the release trains with its
     argparse default, 64 (fixtures/release_script_shapes.json, from the release's own model):
