@@ -42,8 +42,9 @@ def load_state_dict(source: str | Path | Mapping[str, Any]) -> dict[str, np.ndar
                           "instead (e.g. {k: v.numpy() for k, v in state_dict.items()})") from error
     # The release's checkpoints also hold its epoch metrics as numpy scalars; allow those
     # (and nothing else beyond tensors) rather than unpickling arbitrary objects.
-    numpy_scalars = [getattr(np, "_core", np.core).multiarray.scalar, np.dtype,
-                     type(np.dtype(np.float32)), type(np.dtype(np.float64))]
+    multiarray = (np._core if hasattr(np, "_core") else np.core).multiarray  # numpy 2 / 1
+    numpy_scalars = [multiarray.scalar, np.dtype, type(np.dtype(np.float32)),
+                     type(np.dtype(np.float64))]
     with torch.serialization.safe_globals(numpy_scalars):
         loaded = torch.load(str(source), map_location="cpu", weights_only=True)
     if "model_state_dict" in loaded:  # the release's checkpoint layout
