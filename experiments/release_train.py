@@ -109,10 +109,13 @@ def main() -> None:
     def save(obj, filename, *a, **k):
         torch_save(obj, filename, *a, **k)
         if keep is not None and EPOCH_FILE.search(str(filename)):
+            kept = keep / Path(filename).name  # whole before the older one goes: crash-safe
             keep.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(filename, kept.with_suffix(".partial"))
+            kept.with_suffix(".partial").replace(kept)
             for old in keep.glob("epoch_*.pt"):
-                old.unlink()
-            shutil.copy2(filename, keep / Path(filename).name)
+                if old != kept:
+                    old.unlink()
 
     step_lr_class, temperature_class = release.StepLR, release.Temp_Scheduler
     torch_save = torch.save
