@@ -117,10 +117,10 @@ def main() -> None:
         print(json.dumps(result, indent=2))
     else:
         print(f"{args.model} on {args.scene} (paper split, test, 20 runs), d = "
-                f"{run.model_config.node_dim}\n"
-                f"  gst_jax evaluation:  AOE {ours['aoe']:.4f}  FOE {ours['foe']:.4f}\n"
-                f"  release's eval.py:   AOE {theirs['aoe']:.4f}  FOE {theirs['foe']:.4f}  "
-                f"spread {theirs['aoe_spread']:.4f} / {theirs['foe_spread']:.4f}")
+              f"{run.model_config.node_dim}\n"
+              f"  gst_jax evaluation:  AOE {ours['aoe']:.4f}  FOE {ours['foe']:.4f}\n"
+              f"  release's eval.py:   AOE {theirs['aoe']:.4f}  FOE {theirs['foe']:.4f}  "
+              f"spread {theirs['aoe_spread']:.4f} / {theirs['foe_spread']:.4f}")
 
 
 if __name__ == "__main__":
