@@ -10,6 +10,7 @@ in one padded batch.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -132,7 +133,12 @@ def all_finite(tree: Any) -> jax.Array:
                               if jnp.issubdtype(leaf.dtype, jnp.floating)]))
 
 
+@functools.lru_cache(maxsize=8)
 def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool = False,
                     devices: Devices | None = None) -> TrainStep:
-    """The training step of `config` (see TrainStep); already jit-compiled per shape."""
+    """The training step of `config` (see TrainStep); already jit-compiled per shape.
+
+    One per configuration in a process: tracing the model takes longer than compiling it
+    from the persistent cache, so runs trained one after another (tests, notebooks, sweeps
+    of runs) trace it once."""
     return TrainStep(config, rotate=rotate, members=members, devices=devices)
