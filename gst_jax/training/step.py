@@ -133,12 +133,13 @@ def all_finite(tree: Any) -> jax.Array:
                               if jnp.issubdtype(leaf.dtype, jnp.floating)]))
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=1)
 def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool = False,
                     devices: Devices | None = None) -> TrainStep:
     """The training step of `config` (see TrainStep); already jit-compiled per shape.
 
-    One per configuration in a process: tracing the model takes longer than compiling it
-    from the persistent cache, so runs trained one after another (tests, notebooks, sweeps
-    of runs) trace it once."""
+    The last one made is kept: tracing the model takes longer than loading its programs from
+    the persistent cache, so runs of one configuration trained one after another in a
+    process (tests, notebooks) trace it once. Only one: each compiled program holds memory
+    maps, of which a process may hold 65530 (README)."""
     return TrainStep(config, rotate=rotate, members=members, devices=devices)
