@@ -152,7 +152,7 @@ def _free_port() -> int:
 
 def test_two_processes_joined_by_jax_distributed_train_as_one(tmp_path):
     """Two CPU processes on 127.0.0.1, one device each, train one run together."""
-    # Two steps on zara1's first windows, which are small: one program to compile per process.
+    # Two steps on zara1's first windows, all small: one micro-batch shape to compile.
     flags = ["--scene", "zara1", "--epochs", "1", "--batch-size", "8", "--max-train-windows",
              "16", "--checkpoint-every", "1", "--workdir", str(tmp_path / "two")]
     address = f"127.0.0.1:{_free_port()}"

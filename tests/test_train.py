@@ -140,7 +140,7 @@ def test_a_packed_step_equals_the_same_windows_in_one_padded_batch():
         assert np.linalg.norm(flat - flat_padded) <= 1e-5 * np.linalg.norm(flat_padded)
         # float32 sums in another order differ by a few ulps of the largest terms, so an
         # element that nearly cancels needs an absolute tolerance on its leaf's scale (and
-        # on the whole gradient's, for a leaf whose gradient is zero up to rounding).
+        # 1e-7 at least, for a leaf whose gradient is zero up to rounding).
         for leaf, leaf_padded in zip(jax.tree.leaves(grads_), jax.tree.leaves(grads_padded)):
             atol = max(1e-7, 1e-5 * float(np.max(np.abs(leaf_padded))))
             np.testing.assert_allclose(leaf, leaf_padded, rtol=1e-4, atol=atol)
