@@ -110,9 +110,10 @@ def main() -> None:
         torch_save(obj, filename, *a, **k)
         if keep is not None and EPOCH_FILE.search(str(filename)):
             kept = keep / Path(filename).name  # whole before the older one goes: crash-safe
+            partial = kept.with_suffix(".partial")
             keep.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(filename, kept.with_suffix(".partial"))
-            kept.with_suffix(".partial").replace(kept)
+            shutil.copy2(filename, partial)
+            partial.replace(kept)
             for old in keep.glob("epoch_*.pt"):
                 if old != kept:
                     old.unlink()
