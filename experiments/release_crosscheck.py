@@ -20,6 +20,7 @@ the release's LSTM GST with n = 1 and the ghost, as its `run/train_sparse.sh` tr
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import re
 import sys
@@ -109,8 +110,9 @@ def main() -> None:
     run, state_dict = load_either(args.model, args.scene, args.output)
     ours = evaluate_run(run, DataConfig(scene=args.scene), "test", with_kde=False,
                         progress=Progress())
-    theirs = release_evaluation(args.release_dir.resolve(), args.scene, run.model_config,
-                                state_dict)
+    with contextlib.redirect_stdout(sys.stderr):  # the release prints as it builds its model
+        theirs = release_evaluation(args.release_dir.resolve(), args.scene, run.model_config,
+                                    state_dict)
     result = {"model": args.model, "scene": args.scene, "node_dim": run.model_config.node_dim,
               "gst_jax": {"aoe": ours["aoe"], "foe": ours["foe"]}, "release": theirs}
     if args.json:
