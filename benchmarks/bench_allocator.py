@@ -6,11 +6,13 @@ XLA's CPU runtime allocates large buffers on every call. glibc's malloc serves t
 fresh mmaps and unmaps them when freed, so every step faults their pages in again (kernel
 time: page faults, clearing pages). tcmalloc keeps freed memory for reuse; jemalloc, with
 its default settings, hands it back to the kernel after a while.
+
 Each measurement is a child process with the allocator preloaded: it loads (or compiles)
 every program its steps need, then times the same first `--steps` optimiser steps of epoch 1
-and reports wall time, user and system CPU time and minor page faults of those steps. The
-allocators take turns, `--repeats` times in a rotated order. An allocator changes no numerics:
-the children's final losses must agree bit for bit, and the table says whether they did.
+and reports their wall time, user and system CPU time, minor page faults and compilations
+(none expected). The allocators take turns, `--repeats` times in a rotated order. An
+allocator changes no numerics: the children's final losses must agree bit for bit, and the
+table says whether they did.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import jax
 from common import print_table, record
 from gst_jax import data
 from gst_jax.cli import COMPILATION_CACHE
+from gst_jax.compiles import count_compiles
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
@@ -70,20 +73,22 @@ def time_steps(scene: str, protocol: str, edge_heads: int, seed: int, num_steps:
     float(metrics["loss"])
     warm_up_s = time.perf_counter() - start
 
-    before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
-    for index, step in enumerate(steps):
-        state, metrics = train_step(state, jax.random.fold_in(jax.random.key(1), index), step,
-                                    hparams)
-        loss = float(metrics["loss"])                # as the training loop does, every step
-    wall_s = time.perf_counter() - start
-    after = resource.getrusage(resource.RUSAGE_SELF)
+    with count_compiles() as compiles:
+        before, start = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        for index, step in enumerate(steps):
+            state, metrics = train_step(state, jax.random.fold_in(jax.random.key(1), index),
+                                        step, hparams)
+            loss = float(metrics["loss"])            # as the training loop does, every step
+        wall_s = time.perf_counter() - start
+        after = resource.getrusage(resource.RUSAGE_SELF)
     maps = Path("/proc/self/maps").read_text()
     return {"warm_up_s": warm_up_s, "wall_s": wall_s, "s_per_step": wall_s / len(steps),
             "user_s": after.ru_utime - before.ru_utime,
             "system_s": after.ru_stime - before.ru_stime,
             "minor_faults": after.ru_minflt - before.ru_minflt,
+            "compiles_timed": compiles.count,
             "loaded": sorted({name for name in ("tcmalloc", "jemalloc") if name in maps}),
-            "final_loss": loss, "final_loss_hex": float(loss).hex()}
+            "final_loss_hex": loss.hex()}
 
 
 def measure(allocator: str, args: argparse.Namespace) -> dict:
@@ -143,9 +148,10 @@ def main() -> None:
                            vs_baseline=best["wall_s"] / baseline,
                            system_s=best["system_s"], user_s=best["user_s"],
                            minor_faults=best["minor_faults"],
+                           compiles_timed=sum(r["compiles_timed"] for r in results),
                            same_losses=len(losses) == 1))
     print_table(rows, ["allocator", "wall_s_each", "best_s_per_step", "vs_baseline", "user_s",
-                       "system_s", "minor_faults", "same_losses"])
+                       "system_s", "minor_faults", "compiles_timed", "same_losses"])
 
 
 if __name__ == "__main__":
