@@ -74,12 +74,17 @@ def parser(prog: str, doc: str) -> argparse.ArgumentParser:
 COMPILATION_CACHE = Path.home() / ".cache" / "gst_jax" / "xla"
 
 
+def use_compilation_cache() -> None:
+    """Keep compiled programs in COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set."""
+    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
+
+
 def run(command: Callable[[argparse.Namespace], None], parser: argparse.ArgumentParser,
         argv: list[str] | None) -> None:
     """Parse `argv` and run `command`; a user error ends the process with one line."""
     args = parser.parse_args(argv)
-    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
+    use_compilation_cache()
     warnings.formatwarning = lambda message, *_, **__: f"warning: {message}\n"
     try:
         command(args)
