@@ -15,8 +15,8 @@ from typing import Callable
 
 import jax
 
-from gst_jax.config import (EDGE_HEAD_CHOICES, OUTPUTS, PROTOCOLS, SCENES, TEMPORAL_MODELS,
-                            DataConfig, ModelConfig, TrainConfig)
+from gst_jax.config import (EDGE_HEAD_CHOICES, OUTPUTS, PROTOCOLS, SCENES, SCHEDULES,
+                            TEMPORAL_MODELS, DataConfig, ModelConfig, TrainConfig)
 from gst_jax.data import DataError, data_name
 from gst_jax.parallel import DeviceError, Devices, join_processes
 from gst_jax.parallel import devices as parallel_devices
@@ -177,11 +177,16 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
     d = _TRAIN_DEFAULTS
     group.add_argument("--epochs", type=positive_int, default=d.epochs,
                        help=f"epochs (default: {d.epochs})")
+    group.add_argument("--schedule", default=d.schedule, choices=SCHEDULES,
+                       help=f"paper: learning rate x{d.lr_decay} every {d.lr_decay_every} epochs; "
+                            f"compressed: x{d.lr_decay} every epochs/4 (the paper's shape "
+                            "fitted to --epochs; the same at 200). Both anneal tau "
+                            f"{d.tau_start} -> {d.tau_end} over the run (default: {d.schedule})")
     group.add_argument("--batch-size", type=positive_int, default=d.batch_size,
                        help=f"scenes averaged per optimiser step (default: {d.batch_size})")
     group.add_argument("--learning-rate", type=positive_float, default=d.learning_rate,
-                       help=f"initial Adam learning rate, x{d.lr_decay} every {d.lr_decay_every} "
-                            f"epochs (default: {d.learning_rate})")
+                       help="initial Adam learning rate, decayed as --schedule says "
+                            f"(default: {d.learning_rate})")
     if sweep:
         group.add_argument("--seed", type=int, default=d.seed,
                            help=f"first seed; also fixes the shared data order (default: {d.seed})")
@@ -288,7 +293,7 @@ def model_config(args: argparse.Namespace) -> ModelConfig:
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:
-    fields = dict(epochs=args.epochs, batch_size=args.batch_size,
+    fields = dict(epochs=args.epochs, schedule=args.schedule, batch_size=args.batch_size,
                   learning_rate=args.learning_rate, seed=args.seed, rotate=not args.no_rotate,
                   checkpoint_every=args.checkpoint_every,
                   max_train_windows=args.max_train_windows)

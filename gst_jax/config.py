@@ -21,6 +21,8 @@ SCENES = CROWD_SCENES + (CROWD,)
 PROTOCOLS = ("paper", "paper-val", "loo")
 OUTPUTS = ("deterministic", "gaussian")
 TEMPORAL_MODELS = ("lstm", "tcn")
+# Learning-rate and temperature schedules (gst_jax.training.schedules).
+SCHEDULES = ("paper", "compressed")
 # n, the number of edge heads; 0 = full connection (the paper's "F", no selector).
 EDGE_HEAD_CHOICES = (0, 1, 2, 4, 8, 16)
 # Gumbel-softmax temperature of every evaluation and prediction (hard samples; docs/MODEL.md 4).
@@ -141,6 +143,9 @@ class TrainConfig:
 
     Attributes:
       epochs: number of epochs (200).
+      schedule: 'paper' (Adam x lr_decay every lr_decay_every epochs, tau annealed over the
+        run) or 'compressed' (the same shape fitted to `epochs`: x lr_decay every epochs / 4;
+        equal to 'paper' at 200 epochs). See gst_jax.training.schedules.
       batch_size: scenes averaged per optimiser step (16).
       learning_rate: Adam's initial learning rate (1e-3).
       lr_decay / lr_decay_every: multiply the learning rate by 0.3 every 50 epochs.
@@ -156,6 +161,7 @@ class TrainConfig:
     """
 
     epochs: int = 200
+    schedule: str = "paper"
     batch_size: int = 16
     learning_rate: float = 1e-3
     lr_decay: float = 0.3
@@ -171,6 +177,8 @@ class TrainConfig:
     init: str | None = None
 
     def __post_init__(self):
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule {self.schedule!r}: expected one of {', '.join(SCHEDULES)}")
         for name in ("epochs", "batch_size", "checkpoint_every", "lr_decay_every"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")

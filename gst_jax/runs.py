@@ -286,12 +286,21 @@ def run_config(model_config: ModelConfig, data_config: DataConfig, train_config:
 
 
 def same_run(config: dict, other: dict) -> bool:
-    """Whether two run configs train the same thing. The checkpoint cadence says only how
-    often the run is saved, so a resumed run may change it (e.g. to save every epoch of a
-    long run that has to be continued over several sittings)."""
+    """Whether two run configs train the same thing. A field missing from a config (one
+    written before the field existed) has its default value. The checkpoint cadence says only
+    how often the run is saved, so a resumed run may change it (e.g. to save every epoch of
+    a long run that has to be continued over several sittings)."""
     def identity(c: dict) -> dict:
-        return {**c, "train": {k: v for k, v in c["train"].items() if k != "checkpoint_every"}}
+        train = {k: v for k, v in c["train"].items() if k != "checkpoint_every"}
+        return {**c, "model": {**_DEFAULTS["model"], **c["model"]},
+                "data": {**_DEFAULTS["data"], **c["data"]},
+                "train": {**_DEFAULTS["train"], **train}}
     return identity(config) == identity(other)
+
+
+_DEFAULTS = {"model": dataclasses.asdict(ModelConfig()), "data": dataclasses.asdict(DataConfig()),
+             "train": {k: v for k, v in dataclasses.asdict(TrainConfig()).items()
+                       if k != "checkpoint_every"}}
 
 
 def run_name(data_config: DataConfig, model_config: ModelConfig,
@@ -310,13 +319,16 @@ def run_name(data_config: DataConfig, model_config: ModelConfig,
         parts.append("fd")
     if train_config.init:
         parts.append("from-" + Path(train_config.init.replace(":", "-")).name)
+    if train_config.schedule != TrainConfig.schedule:
+        parts.append(train_config.schedule)
     parts += [f"e{train_config.epochs}", f"seed{train_config.seed}"]
     return "-".join(parts)
 
 
 def sweep_name(data_config: DataConfig, train_config: TrainConfig) -> str:
     """The default work directory name of a sweep."""
-    return f"sweep-{data_config.scene}-e{train_config.epochs}"
+    schedule = "" if train_config.schedule == TrainConfig.schedule else f"-{train_config.schedule}"
+    return f"sweep-{data_config.scene}{schedule}-e{train_config.epochs}"
 
 
 class WorkDir:

@@ -23,8 +23,10 @@ import pytest
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.progress import Progress
-from gst_jax.runs import Checkpointer, RunError, WorkDir, code_version, load_run, run_name
+from gst_jax.runs import (Checkpointer, RunError, WorkDir, code_version, load_run, run_config,
+                          run_name, same_run)
 from gst_jax.training.loop import NonFiniteError, fit
+from gst_jax.training.schedules import make_schedule
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
 
@@ -91,6 +93,31 @@ def test_schedule_matches_release():
     np.testing.assert_allclose(lrs, [1e-3, 1e-3, 3e-4, 9e-5, 2.7e-5], rtol=1e-5)
     taus = [float(hparams_for_epoch(MODEL, config, e).controls.tau) for e in (1, 100, 200)]
     np.testing.assert_allclose(taus, [(1 - 1 / 200) * 0.47 + 0.03, 0.265, 0.03], rtol=1e-5)
+
+
+def test_compressed_schedule_fits_the_paper_shape_to_the_run():
+    def schedule(config):
+        return [make_schedule(config).at(e) for e in range(1, config.epochs + 1)]
+    assert schedule(TrainConfig(schedule="compressed")) == schedule(TrainConfig())
+    short = schedule(TrainConfig(schedule="compressed", epochs=50))
+    learning_rates, taus = zip(*short)
+    # x0.3 at each quarter of the run: epochs 14, 26 and 39 start a new rate (E/4 = 12.5).
+    starts = [e for e in range(2, 51) if learning_rates[e - 1] != learning_rates[e - 2]]
+    assert starts == [14, 26, 39]
+    np.testing.assert_allclose(learning_rates[-1], 2.7e-5, rtol=1e-6)
+    np.testing.assert_allclose([taus[0], taus[24], taus[-1]], [0.5 - 0.47 / 50, 0.265, 0.03],
+                               rtol=1e-6)
+
+
+def test_the_schedule_is_part_of_a_runs_identity():
+    compressed = TrainConfig(schedule="compressed", epochs=50)
+    assert run_name(DataConfig(), MODEL, compressed) == "eth-paper-d-n1-compressed-e50-seed1000"
+    paper = run_config(MODEL, DataConfig(), TrainConfig(epochs=50))
+    assert not same_run(paper, run_config(MODEL, DataConfig(), compressed))
+    # A run written before schedules were named trained the paper schedule, and resumes.
+    older = json.loads(json.dumps(paper))
+    del older["train"]["schedule"]
+    assert same_run(older, paper)
 
 
 def test_loss_goes_down_on_a_fixed_batch(fixed_step):

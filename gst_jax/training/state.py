@@ -17,6 +17,7 @@ import optax
 
 from gst_jax.config import ModelConfig, TrainConfig
 from gst_jax.model import Controls, init_params
+from gst_jax.training.schedules import make_schedule
 
 
 @flax.struct.dataclass
@@ -59,25 +60,15 @@ def abstract_train_state(model_config: ModelConfig) -> TrainState:
     return jax.eval_shape(lambda key: create_train_state(model_config, key), jax.random.key(0))
 
 
-def learning_rate(train_config: TrainConfig, epoch: int) -> float:
-    """Adam's rate in a 1-based epoch: x lr_decay every lr_decay_every epochs."""
-    return train_config.learning_rate * train_config.lr_decay ** (
-        (epoch - 1) // train_config.lr_decay_every)
-
-
-def temperature(train_config: TrainConfig, epoch: int) -> float:
-    """The release's annealing over the run: tau(e) = (1 - e/E) (tau0 - tau1) + tau1."""
-    fraction = epoch / train_config.epochs
-    return (1.0 - fraction) * (train_config.tau_start - train_config.tau_end) + train_config.tau_end
-
-
 def hparams_for_epoch(model_config: ModelConfig, train_config: TrainConfig, epoch: int,
                       fully_detected_only: bool | None = None) -> HParams:
-    """The HParams of a 1-based epoch; n and ghost are the model config's."""
+    """The HParams of a 1-based epoch under the run's schedule; n and ghost are the model
+    config's."""
     if fully_detected_only is None:
         fully_detected_only = train_config.fully_detected_only
-    return HParams(controls=Controls.from_config(model_config, temperature(train_config, epoch)),
-                   learning_rate=jnp.float32(learning_rate(train_config, epoch)),
+    learning_rate, tau = make_schedule(train_config).at(epoch)
+    return HParams(controls=Controls.from_config(model_config, tau),
+                   learning_rate=jnp.float32(learning_rate),
                    fully_detected_only=jnp.bool_(fully_detected_only))
 
 
