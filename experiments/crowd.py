@@ -8,8 +8,8 @@
 The run is `python -m gst_jax.train --scene crowd --protocol paper --output O --epochs E
 --seed s` (n = 1, ghost): its train split is the union of the paper train splits of the five
 ETH/UCY scenes, LCAS and WILDTRACK. `--train` runs or resumes it as `experiments/table1.py`
-does (same parking in <results>/resume/), then evaluates it with `python -m gst_jax.evaluate
-RUN --scene S` on every scene's test split. Writes <results>/crowd[_p].md and .json: per scene,
+does (same parking in <results>/resume/), then evaluates it on every scene's test split, as
+`python -m gst_jax.evaluate RUN --scene S` does. Writes <results>/crowd[_p].md and .json: per scene,
 the general model beside that scene's own Table I model (its record in <results>/runs/, seed
 1000) and constant velocity; the run's record <results>/runs/<run name>.json keeps the
 per-scene metrics.
@@ -19,47 +19,45 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).parent))
-from table1 import run_scene_seed, train_flags, workdir_of  # noqa: E402
+from _common import evaluate, park
+from table1 import run_scene_seed, train_flags, workdir_of
 
-from gst_jax import pretrained  # noqa: E402
-from gst_jax.config import CROWD, CROWD_SCENES, ETH_UCY_SCENES, DataConfig  # noqa: E402
-from gst_jax.runs import WorkDir  # noqa: E402
+from gst_jax import pretrained
+from gst_jax.config import CROWD, CROWD_SCENES, ETH_UCY_SCENES, DataConfig
+from gst_jax.io.workdir import WorkDir
 
 SCENES = CROWD_SCENES
 OWN_MODEL_SEED = 1000
 
 
-def per_scene_metrics(workdir: Path, epochs: int, evaluate: bool) -> dict[str, dict]:
+def per_scene_metrics(workdir: Path, epochs: int, evaluate_missing: bool) -> dict[str, dict]:
     """The run's test metrics on each scene it was evaluated on (evaluating the missing ones
-    first if `evaluate`)."""
+    first if `evaluate_missing`)."""
     found = {}
     for scene in SCENES:
         config = DataConfig(scene=scene)
-        if evaluate and WorkDir(workdir).read_evaluation(config, "test", epochs) is None:
-            subprocess.run([sys.executable, "-m", "gst_jax.evaluate", str(workdir),
-                            "--scene", scene], check=True)
+        if evaluate_missing and WorkDir(workdir).read_evaluation(config, "test", epochs) is None:
+            evaluate(workdir, config)
         if (result := WorkDir(workdir).read_evaluation(config, "test", epochs)) is not None:
             found[scene] = result
     return found
 
 
 def crowd_record(runs: Path, records: Path, output: str, epochs: int, seed: int, train: bool,
-                 train_options: tuple[str, ...]) -> dict | None:
+                 checkpoint_every: int) -> dict | None:
     """The general run's record (its union test metrics, see table1.run_scene_seed) with
     "per_scene": its test metrics on every scene evaluated so far."""
     record = run_scene_seed(runs, records, CROWD, "paper", output, epochs, seed, train,
-                            train_options)
+                            checkpoint_every)
     if record is None:
         return None
     workdir = workdir_of(runs, CROWD, "paper", output, epochs, seed)
     record_path = records / f"{workdir.name}.json"
     if workdir.is_dir():
-        record["per_scene"] = per_scene_metrics(workdir, epochs, evaluate=train)
+        record["per_scene"] = per_scene_metrics(workdir, epochs, evaluate_missing=train)
         record_path.write_text(json.dumps(record, indent=2) + "\n")
     elif record["workdir"].startswith("gst_jax/pretrained/"):      # the shipped model's
         name = Path(record["workdir"]).name
@@ -77,7 +75,8 @@ def rows(record: dict | None, runs: Path, records: Path, output: str, epochs: in
             row.update(aoe=general["aoe"], foe=general["foe"], pedestrians=general["pedestrians"],
                        cv_aoe=general["cv_aoe"], cv_foe=general["cv_foe"])
         if scene in ETH_UCY_SCENES and (own := run_scene_seed(
-                runs, records, scene, "paper", output, epochs, OWN_MODEL_SEED, train=False)):
+                runs, records, scene, "paper", output, epochs, OWN_MODEL_SEED,
+                train_missing=False)):
             row.update(own_aoe=own["aoe"], own_foe=own["foe"])
         table.append(row)
     if record is not None:
@@ -136,12 +135,12 @@ def main(argv: list[str] | None = None) -> None:
     records = out / "runs"
     workdir = workdir_of(runs, CROWD, "paper", args.output, args.epochs, args.seed)
     if args.park:
-        if epoch := WorkDir(workdir).park(out / "resume" / workdir.name):
+        if epoch := park(workdir, out / "resume" / workdir.name):
             print(f"parked {workdir.name} after epoch {epoch}", file=sys.stderr)
         return
 
     record = crowd_record(runs, records, args.output, args.epochs, args.seed, args.train,
-                          ("--checkpoint-every", str(args.checkpoint_every)))
+                          args.checkpoint_every)
     table = rows(record, runs, records, args.output, args.epochs)
     command = " ".join(["python -m gst_jax.train",
                         *train_flags(CROWD, "paper", args.output, args.epochs, args.seed)])

@@ -15,9 +15,11 @@ import argparse
 import json
 from pathlib import Path
 
-from gst_jax import cli, figures
-from gst_jax.config import CROWD_SCENES, DataConfig, ModelConfig, TrainConfig
-from gst_jax.training.members import DETECTION, plan_members, sweep_model_config
+from _figures import best_n_per_dataset, partial_vs_full_detection, sparse_gain_against_density
+
+from gst_jax import cli
+from gst_jax.config import CROWD_SCENES, DETECTION, DataConfig, ModelConfig, TrainConfig
+from gst_jax.training.members import plan_members, sweep_model_config
 from gst_jax.training.sweep import fit_sweep, format_markdown
 
 
@@ -53,9 +55,9 @@ def main() -> None:
                                      eval_samples=args.eval_samples,
                                      max_eval_windows=args.max_eval_windows))
 
-    figures.partial_vs_full_detection(all_results, out / "partial_vs_full.png")
-    figures.sparse_gain_against_density(all_results, out / "sparse_gain_vs_density.png")
-    figures.best_n_per_dataset(all_results, out / "best_n.png")
+    partial_vs_full_detection(all_results, out / "partial_vs_full.png")
+    sparse_gain_against_density(all_results, out / "sparse_gain_vs_density.png")
+    best_n_per_dataset(all_results, out / "best_n.png")
     (out / "results.json").write_text(json.dumps(all_results, indent=2) + "\n")
     (out / "results.md").write_text("\n".join(format_markdown(r) for r in all_results))
     print((out / "results.md").read_text())

@@ -6,8 +6,8 @@
 
 Each (scene, seed) is the work directory of `python -m gst_jax.train --scene S --protocol P
 --output O --epochs E --seed s` under --runs (n = 1, ghost: the paper's configuration).
-`--train` runs or resumes that command where the run is incomplete, then evaluates it with the
-paper protocol (`python -m gst_jax.evaluate`, 20 runs). Every finished evaluation is also kept
+`--train` trains or resumes that run where it is incomplete, then evaluates it with the
+paper protocol (20 runs), as `python -m gst_jax.evaluate` does. Every finished evaluation is also kept
 as a small record in <results>/runs/<run name>.json (committed), so the table survives the loss
 of the work directories. Scenes without a finished evaluation are listed as missing (with
 the epoch an unfinished run has reached), never filled in. Writes
@@ -24,16 +24,18 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+from _common import evaluate, latest_checkpoint, park, train
+from _figures import table1_against_paper
 
-from gst_jax import data, figures, pretrained
+from gst_jax import data, pretrained
 from gst_jax.config import ETH_UCY_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import constant_velocity_baseline
-from gst_jax.runs import WorkDir, run_name
+from gst_jax.io.workdir import WorkDir, run_name
+from gst_jax.model.heads import head
 
 # docs/MODEL.md 4: the paper's Table I (AOE / FOE in metres, fully detected pedestrians).
 PAPER = {
@@ -61,7 +63,7 @@ def train_flags(scene: str, protocol: str, output: str, epochs: int,
 def shipped_record(scene: str, protocol: str, output: str, epochs: int,
                    seed: int) -> dict | None:
     """The test metrics recorded with a shipped pretrained model of exactly this run."""
-    name = f"{scene}_{'d' if output == 'deterministic' else 'p'}"   # e.g. eth_d, eth_p
+    name = f"{scene}_{head(output).letter}"                          # e.g. eth_d, eth_p
     if name not in pretrained.available():
         return None
     meta = pretrained.load_meta(name)
@@ -73,11 +75,11 @@ def shipped_record(scene: str, protocol: str, output: str, epochs: int,
 
 
 def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output: str,
-                   epochs: int, seed: int, train: bool,
-                   train_options: tuple[str, ...] = ()) -> dict | None:
+                   epochs: int, seed: int, train_missing: bool,
+                   checkpoint_every: int = TrainConfig.checkpoint_every) -> dict | None:
     """Evaluation and training time of one run: its work directory's final evaluation (kept as
     a record in `records`), else that record, else the record of the shipped model trained by
-    the same command, else (if `train`) a new run."""
+    the same command, else (if `train_missing`) a new run."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
     record_path = records / f"{workdir.name}.json"
     parked = records.parent / "resume" / workdir.name
@@ -94,15 +96,15 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
         return json.loads(record_path.read_text())
     if (record := shipped_record(scene, protocol, output, epochs, seed)) is not None:
         return {**record, "seed": seed}
-    if not train:
+    if not train_missing:
         return None
     if parked.is_dir() and not (workdir / "checkpoints").is_dir():
         shutil.copytree(parked, workdir)                # continue another sitting's run
-    subprocess.run([sys.executable, "-m", "gst_jax.train",
-                    *train_flags(scene, protocol, output, epochs, seed), *train_options,
-                    "--workdir", str(workdir)], check=True)
-    subprocess.run([sys.executable, "-m", "gst_jax.evaluate", str(workdir)], check=True)
-    return run_scene_seed(runs, records, scene, protocol, output, epochs, seed, train=False)
+    train(ModelConfig(output=output), data_config,
+          TrainConfig(epochs=epochs, seed=seed, checkpoint_every=checkpoint_every), workdir)
+    evaluate(workdir)
+    return run_scene_seed(runs, records, scene, protocol, output, epochs, seed,
+                          train_missing=False)
 
 
 def trained_epochs(runs: Path, records: Path, scene: str, protocol: str, output: str,
@@ -110,8 +112,8 @@ def trained_epochs(runs: Path, records: Path, scene: str, protocol: str, output:
     """How far an unfinished run has got: the newest checkpoint of its work directory or of
     its parked copy (None: not started)."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
-    found = [WorkDir(path).latest_checkpoint() for path in (workdir, records.parent / "resume"
-                                                             / workdir.name)]
+    found = [latest_checkpoint(path) for path in (workdir, records.parent / "resume"
+                                                  / workdir.name)]
     return max((epoch for epoch in found if epoch is not None), default=None)
 
 
@@ -247,7 +249,7 @@ def main(argv: list[str] | None = None) -> None:
                 workdir = workdir_of(Path(args.runs), scene, args.protocol, args.output,
                                      args.epochs, seed)
                 if not (records / f"{workdir.name}.json").exists() and (
-                        epoch := WorkDir(workdir).park(records.parent / "resume" / workdir.name)):
+                        epoch := park(workdir, records.parent / "resume" / workdir.name)):
                     print(f"parked {workdir.name} after epoch {epoch}", file=sys.stderr)
         return
 
@@ -255,7 +257,7 @@ def main(argv: list[str] | None = None) -> None:
     for scene in args.scenes:
         per_seed = [r for seed in seeds if (r := run_scene_seed(
             Path(args.runs), records, scene, args.protocol, args.output, args.epochs, seed,
-            args.train, ("--checkpoint-every", str(args.checkpoint_every))))]
+            args.train, args.checkpoint_every))]
         seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
         command = " ".join(["python -m gst_jax.train", *train_flags(
             scene, args.protocol, args.output, args.epochs, seed_shown)])
@@ -269,7 +271,7 @@ def main(argv: list[str] | None = None) -> None:
         "_p" if args.output == "gaussian" else "")
     out = Path(args.workdir)
     out.mkdir(parents=True, exist_ok=True)
-    figures.table1_against_paper(rows, out / f"{stem}.png", title=(
+    table1_against_paper(rows, out / f"{stem}.png", title=(
         f"{'GST (P)' if args.output == 'gaussian' else 'GST (D)'}, {args.protocol} protocol, "
         f"n = 1, ghost, {args.epochs} epochs, test split, 20 runs"),
         paper_label="paper" if args.protocol == "paper" else "paper (its own split)")

@@ -15,18 +15,25 @@ The layers, bottom up: `data` (numpy), `graph` and `gumbel`, `model`, `rollout`,
 (work directories) above them; the commands (`python -m gst_jax.train`, ...) on top.
 """
 
-from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-from gst_jax.data import SceneBatch, make_batch
-from gst_jax.model import Controls, init_params
-from gst_jax.predict import Prediction, make_predict
+import importlib
 
-__all__ = ["Controls", "DataConfig", "ModelConfig", "Prediction", "SceneBatch", "TrainConfig",
-           "init_params", "load_pretrained", "make_batch", "make_predict"]
+# Each public name and the module that defines it; a module is imported when its name is
+# first used, so that `import gst_jax.data` (numpy only) or a command that prints statistics
+# does not pay for importing jax, flax and orbax.
+_PUBLIC = {
+    "Controls": "gst_jax.model", "DataConfig": "gst_jax.config", "ModelConfig": "gst_jax.config",
+    "Prediction": "gst_jax.predict", "SceneBatch": "gst_jax.data", "TrainConfig": "gst_jax.config",
+    "init_params": "gst_jax.model", "load_pretrained": "gst_jax.pretrained",
+    "make_batch": "gst_jax.data", "make_predict": "gst_jax.predict",
+}
+__all__ = sorted(_PUBLIC)
 
 
 def __getattr__(name: str):
-    # Checkpoints need orbax, a heavy import: loaded when a shipped model is first asked for.
-    if name == "load_pretrained":
-        from gst_jax.pretrained import load_pretrained
-        return load_pretrained
+    if name in _PUBLIC:
+        return getattr(importlib.import_module(_PUBLIC[name]), name)
     raise AttributeError(f"module 'gst_jax' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))

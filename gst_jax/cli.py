@@ -11,23 +11,18 @@ import os
 import sys
 import warnings
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-import jax
-
-from gst_jax.config import (EDGE_HEAD_CHOICES, OUTPUTS, PROTOCOLS, SCENES, SCHEDULES,
+from gst_jax.config import (DETECTION, EDGE_HEAD_CHOICES, PROTOCOLS, SCENES, SCHEDULES,
                             TEMPORAL_MODELS, DataConfig, ModelConfig, TrainConfig)
-from gst_jax.data import DataError, data_name
-from gst_jax.parallel import DeviceError, Devices, join_processes
-from gst_jax.parallel import devices as parallel_devices
-from gst_jax.runs import RunError
-from gst_jax.training.loop import NonFiniteError
-from gst_jax.training.members import DETECTION
+from gst_jax.data import data_name
+from gst_jax.errors import USER_ERRORS, DataError
+
+if TYPE_CHECKING:
+    from gst_jax.parallel import Devices
 
 _TRAIN_DEFAULTS = TrainConfig()
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048}
-# Errors whose message is the whole story: a command prints it on one line and exits 1.
-USER_ERRORS = (DataError, RunError, NonFiniteError, DeviceError)
 
 
 def positive_int(text: str) -> int:
@@ -75,9 +70,16 @@ COMPILATION_CACHE = Path.home() / ".cache" / "gst_jax" / "xla"
 
 
 def use_compilation_cache() -> None:
-    """Keep compiled programs in COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set."""
-    if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        jax.config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
+    """Keep compiled programs in COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set.
+
+    A command that computes nothing (`data stats`) must not pay for importing jax: where it
+    is not imported yet, jax reads the setting from the environment when it is."""
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return
+    if "jax" in sys.modules:
+        sys.modules["jax"].config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
+    else:
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILATION_CACHE)
 
 
 def run(command: Callable[[argparse.Namespace], None], parser: argparse.ArgumentParser,
@@ -148,6 +150,8 @@ def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
     """--edge-heads (one n, or a comma-separated list for sweeps), --no-ghost, --output,
     --temporal, --node-dim."""
+    from gst_jax.model.heads import HEADS       # only commands that build a model load jax
+
     group = parser.add_argument_group("model")
     if several_edge_heads:
         group.add_argument("--edge-heads", default="0,1,2,4,8,16", type=parse_edge_heads,
@@ -159,8 +163,9 @@ def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool
                                 "(0 = full connection, no Gumbel selector; default: 1)")
     group.add_argument("--no-ghost", action="store_true",
                        help="disable the ghost agent (the 'attend to nobody' neighbour)")
-    group.add_argument("--output", default="deterministic", choices=OUTPUTS,
-                       help="GST (D): displacements; GST (P): bivariate Gaussians (default: D)")
+    group.add_argument("--output", default=ModelConfig.output, choices=tuple(HEADS),
+                       help="the output head: deterministic = GST (D), displacements; gaussian = "
+                            "GST (P), bivariate Gaussians (default: deterministic)")
     group.add_argument("--temporal", default="lstm", choices=TEMPORAL_MODELS,
                        help="lstm: recurrent rollout, interacting at every predicted step "
                             "(paper); tcn: the release's temporal convolution readout of the "
@@ -232,13 +237,18 @@ def add_device_flags(parser: argparse.ArgumentParser) -> None:
 def devices(args: argparse.Namespace, *, members: int | None = None) -> Devices | None:
     """The devices the flags name; None for one device (the single-device program). For a
     sweep of `members`, by default the most devices that split them evenly."""
+    import jax
+
+    from gst_jax import parallel
+
     if args.coordinator is not None:
         auto = args.coordinator == "auto"
-        join_processes(None if auto else args.coordinator, args.num_processes, args.process_id)
+        parallel.join_processes(None if auto else args.coordinator, args.num_processes,
+                                args.process_id)
     count = args.devices
     if count is None and members is not None and jax.process_count() == 1:
         count = math.gcd(members, jax.local_device_count())
-    chosen = parallel_devices(count)
+    chosen = parallel.devices(count)
     return chosen if chosen.count > 1 else None
 
 

@@ -19,29 +19,60 @@ CROWD_SCENES = ETH_UCY_SCENES + TRAJNET_SCENES
 CROWD = "crowd"
 SCENES = CROWD_SCENES + (CROWD,)
 PROTOCOLS = ("paper", "paper-val", "loo")
-OUTPUTS = ("deterministic", "gaussian")
 TEMPORAL_MODELS = ("lstm", "tcn")
 # Learning-rate and temperature schedules (gst_jax.training.schedules).
 SCHEDULES = ("paper", "compressed")
 # n, the number of edge heads; 0 = full connection (the paper's "F", no selector).
 EDGE_HEAD_CHOICES = (0, 1, 2, 4, 8, 16)
+# Which pedestrians a sweep observes (its --fully-detected-only): everyone (the paper's
+# default), only the fully detected (the paper's "F" baseline), or both side by side.
+DETECTION = {"partial": (False,), "full": (True,), "both": (False, True)}
 # Gumbel-softmax temperature of every evaluation and prediction (hard samples; docs/MODEL.md 4).
 EVAL_TAU = 0.03
-# The model's time step: 2.5 Hz, 8 observed steps (3.2 s), 12 predicted (4.8 s).
-MODEL_HZ = 2.5
 
 
 @dataclasses.dataclass(frozen=True)
-class DataConfig:
-    """How scene windows are cut from raw tracks and grouped into batches.
+class TimeGrid:
+    """The steps a model observes and predicts: `obs_len` observed then `pred_len` predicted,
+    `step_s` seconds apart. The paper's: 8 and 12 steps of 0.4 s (3.2 s observed, 4.8 s
+    predicted, 2.5 Hz). A model records its grid (`ModelConfig.grid`); data, evaluation,
+    prediction files and the simulator follow it."""
+
+    step_s: float = 0.4
+    obs_len: int = 8
+    pred_len: int = 12
+
+    @property
+    def seq_len(self) -> int:
+        return self.obs_len + self.pred_len
+
+    @property
+    def hz(self) -> float:
+        return 1.0 / self.step_s
+
+
+class _FromDict:
+    """`from_dict`: a config from its JSON form (config.json, checkpoints, meta.json). Fields it
+    lacks take their defaults; fields a config no longer has (RETIRED) are dropped, so that
+    runs written by earlier versions still load, resume and compare."""
+
+    RETIRED: frozenset = frozenset()
+
+    @classmethod
+    def from_dict(cls, fields: dict):
+        return cls(**{k: v for k, v in fields.items() if k not in cls.RETIRED})
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig(_FromDict):
+    """Which windows of which files: a scene or your own files, and a split protocol. Windows
+    are cut to the time grid of the model that reads them (`TimeGrid`).
 
     Attributes:
       scene: one of SCENES, or the name of your own `data`.
       protocol: 'paper' (the release's per-file temporal 80/20 split), 'paper-val' (the same,
         with a validation set carved from the end of each file's train windows and the train
         windows overlapping it in time removed) or 'loo' (leave-one-scene-out; ETH/UCY only).
-      obs_len: observed steps (8 = 3.2 s).
-      pred_len: predicted steps (12 = 4.8 s).
       train_fraction: fraction of each file's windows used for training (paper: 0.8).
       val_fraction: with 'paper-val', fraction of each file's train windows held out.
       data_dir: folder holding `eth_ucy/` and `trajnetpp/`; None = the bundled `data/`.
@@ -51,15 +82,16 @@ class DataConfig:
         or a glob of `frame ped x y` text files or TrajNet++ ndjson.
       fps: frame ids per second of `data` (25 for ETH/UCY's video frames, 10 for a 10 Hz
         tracker numbering its samples 0, 1, 2, ...); annotations at a multiple of the model's
-        2.5 Hz are resampled to it, others refused. None: a TrajNet++ file's own rate, else
-        annotations taken to be 0.4 s apart.
+        rate are resampled to it, others refused. None: a TrajNet++ file's own rate, else
+        annotations taken to be one model step apart.
       scale: metres per unit of `data`'s coordinates.
     """
 
+    # Windows followed DataConfig's own obs_len / pred_len before they followed the model's.
+    RETIRED = frozenset({"obs_len", "pred_len"})
+
     scene: str = "eth"
     protocol: str = "paper"
-    obs_len: int = 8
-    pred_len: int = 12
     train_fraction: float = 0.8
     val_fraction: float = 0.1
     data_dir: str | None = None
@@ -68,13 +100,9 @@ class DataConfig:
     fps: float | None = None
     scale: float = 1.0
 
-    @property
-    def seq_len(self) -> int:
-        return self.obs_len + self.pred_len
-
 
 @dataclasses.dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(_FromDict):
     """Shapes and structural switches of the Gumbel Social Transformer (docs/MODEL.md 2).
 
     Attributes:
@@ -90,11 +118,13 @@ class ModelConfig:
       encoder_layers / encoder_heads / encoder_ff_dim: node transformer (3, 8, 128).
       lstm_hidden: hidden width of the masked LSTM (32).
       dropout: dropout rate of selector MLP and encoder (0.1).
-      output: 'deterministic' (GST (D)) or 'gaussian' (GST (P)).
+      output: the output head (`gst_jax.model.heads.HEADS`): 'deterministic' (GST (D)) or
+        'gaussian' (GST (P)).
       temporal: 'lstm' (paper default: recurrent rollout with interaction at every predicted
         step) or 'tcn' (the release's temporal convolution readout: interaction over the
         observed steps only, all predicted steps at once).
-      obs_len / pred_len: steps observed and predicted.
+      step_s / obs_len / pred_len: the model's time grid (`grid`): steps observed and
+        predicted, step_s seconds apart.
     """
 
     node_dim: int = 32
@@ -107,10 +137,11 @@ class ModelConfig:
     encoder_ff_dim: int = 128
     lstm_hidden: int = 32
     dropout: float = 0.1
-    output: Literal["deterministic", "gaussian"] = "deterministic"
+    output: str = "deterministic"
     temporal: Literal["lstm", "tcn"] = "lstm"
-    obs_len: int = 8
-    pred_len: int = 12
+    step_s: float = TimeGrid.step_s
+    obs_len: int = TimeGrid.obs_len
+    pred_len: int = TimeGrid.pred_len
 
     def __post_init__(self):
         if self.node_dim % self.encoder_heads:
@@ -123,8 +154,10 @@ class ModelConfig:
                              f"{self.max_edge_heads}")
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"temporal model {self.temporal!r}: expected 'lstm' or 'tcn'")
-        if self.output not in OUTPUTS:
-            raise ValueError(f"output {self.output!r}: expected 'deterministic' or 'gaussian'")
+
+    @property
+    def grid(self) -> TimeGrid:
+        return TimeGrid(self.step_s, self.obs_len, self.pred_len)
 
     @property
     def head_slots(self) -> int:
@@ -138,7 +171,7 @@ class ModelConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(_FromDict):
     """The optimisation schedule (docs/MODEL.md 3; defaults are the release's).
 
     Attributes:
@@ -189,3 +222,20 @@ class TrainConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value}")
+
+
+@dataclasses.dataclass(frozen=True)
+class Member:
+    """One configuration of a sweep: n (0 = full connection), detection, seed."""
+
+    edge_heads: int
+    fully_detected_only: bool
+    seed: int
+
+    @property
+    def detection(self) -> str:
+        return "full" if self.fully_detected_only else "partial"
+
+    @property
+    def name(self) -> str:
+        return f"n{self.edge_heads}-{self.detection}-seed{self.seed}"

@@ -19,19 +19,18 @@ import jax
 import numpy as np
 
 from gst_jax import data, graph, metrics
-from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig
+from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TimeGrid
+from gst_jax.errors import DataError
 from gst_jax.model import Controls
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.prediction_files import PredictedBatch, read_predictions, write_predictions
 from gst_jax.progress import Progress
 
-# Scenes whose batches of (padded) pedestrians fit this many padded edges share one program.
-DEFAULT_EDGE_BUDGET = 16 * 32 * 32
 
 
 def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: ModelConfig, *,
-                    num_samples: int = 20, edge_budget: int = DEFAULT_EDGE_BUDGET,
+                    num_samples: int = 20,
                     with_kde: bool = True, with_baseline: bool = True,
                     fully_detected_only: bool = False, controls: Controls | None = None,
                     predict=None, progress: Progress | None = None,
@@ -42,7 +41,7 @@ def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: 
     the constant-velocity baseline.
     """
     predicted = predict_windows(params, key, window_set, config, num_samples=num_samples,
-                                edge_budget=edge_budget, fully_detected_only=fully_detected_only,
+                                fully_detected_only=fully_detected_only,
                                 controls=controls, predict=predict, progress=progress,
                                 devices=devices)
     return score(predicted, obs_len=config.obs_len, with_kde=with_kde,
@@ -50,7 +49,7 @@ def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: 
 
 
 def predict_windows(params, key: jax.Array, window_set: data.WindowSet, config: ModelConfig, *,
-                    num_samples: int = 20, edge_budget: int = DEFAULT_EDGE_BUDGET,
+                    num_samples: int = 20,
                     fully_detected_only: bool = False, controls: Controls | None = None,
                     predict=None, progress: Progress | None = None,
                     devices: Devices | None = None) -> Iterator[PredictedBatch]:
@@ -69,7 +68,7 @@ def predict_windows(params, key: jax.Array, window_set: data.WindowSet, config: 
     if devices is not None:
         params, key, controls = devices.replicate((params, key, controls))
     started, done = time.perf_counter(), 0
-    for batch in data.evaluation_batches(window_set, edge_budget=edge_budget,
+    for batch in data.evaluation_batches(window_set,
                                          batch_multiple=devices.count if devices else 1):
         if fully_detected_only:
             batch = jax.tree.map(np.asarray, graph.drop_partially_detected(batch, True))
@@ -85,91 +84,43 @@ def predict_windows(params, key: jax.Array, window_set: data.WindowSet, config: 
 
 def score(predicted: Iterable[PredictedBatch], *, obs_len: int, with_kde: bool = True,
           with_baseline: bool = True) -> dict[str, Any]:
-    """The metrics of sampled futures against the windows' own: AOE/FOE per run, best-of-K,
-    KDE NLL, collisions (0.1 m, and TrajNet++'s Col-I / Col-II), constant velocity."""
-    totals: dict[str, Any] = {}
-
-    def add(name, value):
-        totals[name] = totals.get(name, 0.0) + np.asarray(value, dtype=np.float64)
-
-    num_samples = 0
-    for batch, pred, predicted_mask in predicted:                    # pred (K, B, P, N, 2)
-        num_samples = pred.shape[0]
-        # scipy's 2-D KDE needs more samples than dimensions; with K <= 2 there is no KDE NLL.
-        with_kde = with_kde and num_samples > 2
-        truth = np.asarray(batch.positions[:, obs_len:])             # (B, P, N, 2)
-        truth_step_mask = batch.position_mask[:, obs_len:] * batch.scene_mask[:, None, None]
-        eval_mask = metrics.fully_detected_mask(batch.node_mask) * batch.scene_mask[:, None]
-        for name, value in metrics.aoe_foe_sums(pred, truth, eval_mask).items():
-            add(name, value)
-        for name, value in metrics.min_ade_fde_sums(pred, truth, eval_mask).items():
-            add(name, value)
-        for name, value in metrics.release_spread_sums(pred, truth, eval_mask).items():
-            add(name, value)
-        if with_kde:
-            for name, value in metrics.kde_nll_sums(pred, truth, eval_mask).items():
-                add("kde_" + name, value)
-        collisions, pairs = metrics.collision_sums(pred, predicted_mask)
-        add("pred_collisions", np.sum(collisions))
-        add("pred_pairs", np.sum(pairs))
-        collisions, pairs = metrics.collision_sums(truth, predicted_mask, truth_step_mask)
-        add("truth_collisions", np.sum(collisions))
-        add("truth_pairs", np.sum(pairs))
-        for name, value in metrics.trajnet_collision_sums(pred, truth, eval_mask, predicted_mask,
-                                                          truth_step_mask).items():
-            add("trajnet_" + name, value)
-        if with_baseline:
-            for name, value in _constant_velocity_sums(batch, obs_len, eval_mask).items():
-                add("cv_" + name, value)
-    return _summarize(totals, num_samples, with_kde, with_baseline)
+    """The metrics of sampled futures against the windows' own (`metrics.METRICS`): AOE/FOE
+    per run, best-of-K, KDE NLL, collisions (0.1 m, and TrajNet++'s Col-I / Col-II),
+    constant velocity."""
+    names = [name for name in metrics.METRICS if (with_kde or name != "kde_nll")
+             and (with_baseline or name not in metrics.BASELINES)]
+    totals, num_samples = _score(predicted, obs_len, names)
+    return {"pedestrians": int(totals["aoe"].count), "samples": num_samples,
+            **metrics.summarize(totals)}
 
 
-def constant_velocity_baseline(window_set: data.WindowSet, *, obs_len: int = 8) -> dict[str, Any]:
+def constant_velocity_baseline(window_set: data.WindowSet, *,
+                               grid: TimeGrid = TimeGrid()) -> dict[str, Any]:
     """The constant-velocity column of `evaluate_params` without a model: AOE/FOE on the
     fully detected pedestrians of `window_set` (same windows, same pedestrians)."""
-    totals: dict[str, Any] = {}
-    for batch in data.evaluation_batches(window_set):
-        eval_mask = metrics.fully_detected_mask(batch.node_mask) * batch.scene_mask[:, None]
-        for name, value in _constant_velocity_sums(batch, obs_len, eval_mask).items():
-            totals[name] = totals.get(name, 0.0) + np.asarray(value, dtype=np.float64)
-    count = float(totals["count"])
-    return {"pedestrians": int(count), "cv_aoe": float(totals["aoe_sum"][0] / max(count, 1.0)),
-            "cv_foe": float(totals["foe_sum"][0] / max(count, 1.0))}
+    batches = (PredictedBatch(batch, None, batch.predicted_mask(grid.obs_len))
+               for batch in data.evaluation_batches(window_set))
+    totals, _ = _score(batches, grid.obs_len, metrics.BASELINES)
+    return {"pedestrians": int(totals["cv_aoe"].count), **metrics.summarize(totals)}
 
 
-def _constant_velocity_sums(batch, obs_len: int, eval_mask: np.ndarray) -> dict:
-    truth = np.asarray(batch.positions[:, obs_len:])                 # (B, P, N, 2)
-    cv = metrics.constant_velocity(batch.positions[:, :obs_len], batch.node_mask[:, :obs_len],
-                                   pred_len=truth.shape[1])
-    return metrics.aoe_foe_sums(cv[None], truth, eval_mask)
-
-
-def _summarize(totals: dict, num_samples: int, with_kde: bool, with_baseline: bool) -> dict:
-    count = float(totals["count"])
-    runs_aoe = totals["aoe_sum"] / max(count, 1.0)
-    runs_foe = totals["foe_sum"] / max(count, 1.0)
-    result = {
-        "pedestrians": int(count),
-        "samples": num_samples,
-        "aoe": float(np.mean(runs_aoe)), "aoe_std": float(np.std(runs_aoe)),
-        "foe": float(np.mean(runs_foe)), "foe_std": float(np.std(runs_foe)),
-        # The release's "std" (docs/MODEL.md 4): per-window spread across runs, summed.
-        "release_aoe_std": float(totals["aoe_window_std_sum"] / max(count, 1.0)),
-        "release_foe_std": float(totals["foe_window_std_sum"] / max(count, 1.0)),
-        "min_ade": float(totals["min_ade_sum"] / max(count, 1.0)),
-        "min_fde": float(totals["min_fde_sum"] / max(count, 1.0)),
-        "collision_rate": float(totals["pred_collisions"] / max(totals["pred_pairs"], 1.0)),
-        "truth_collision_rate": float(totals["truth_collisions"]
-                                      / max(totals["truth_pairs"], 1.0)),
-        "col_i": float(np.mean(totals["trajnet_col1_sum"]) / max(count, 1.0)),
-        "col_ii": float(np.mean(totals["trajnet_col2_sum"]) / max(count, 1.0)),
-    }
-    if with_kde:
-        result["kde_nll"] = float(totals["kde_nll_sum"] / max(totals["kde_count"], 1.0))
-    if with_baseline:
-        result["cv_aoe"] = float(totals["cv_aoe_sum"][0] / max(count, 1.0))
-        result["cv_foe"] = float(totals["cv_foe_sum"][0] / max(count, 1.0))
-    return result
+def _score(predicted: Iterable[PredictedBatch], obs_len: int, names: Iterable[str]
+           ) -> tuple[dict[str, metrics.Ratio], int]:
+    """The summed ratios of the metrics `names` over every batch, and K."""
+    totals: dict[str, metrics.Ratio] = {}
+    num_samples = 0
+    for batch, pred, predicted_mask in predicted:                    # pred (K, B, P, N, 2)
+        num_samples = 0 if pred is None else pred.shape[0]
+        scene_mask = batch.scene_mask
+        scored = metrics.Scored(
+            pred=pred, truth=np.asarray(batch.positions[:, obs_len:]),
+            scored_mask=batch.fully_detected_mask * scene_mask[:, None],
+            predicted_mask=predicted_mask,
+            truth_step_mask=batch.position_mask[:, obs_len:] * scene_mask[:, None, None],
+            observed=batch.positions[:, :obs_len], observed_node_mask=batch.node_mask[:, :obs_len])
+        for name in names:
+            metrics.accumulate(totals, metrics.METRICS[name](scored))
+    return totals, num_samples
 
 
 def protocol_line(data_config: DataConfig, split: str, num_samples: int,
@@ -221,10 +172,10 @@ def format_markdown(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _split_windows(data_config: DataConfig, split: str) -> data.WindowSet:
-    window_set = data.load_split(data_config, split)
+def _split_windows(data_config: DataConfig, split: str, grid: TimeGrid) -> data.WindowSet:
+    window_set = data.load_split(data_config, split, grid)
     if not len(window_set):
-        raise data.DataError(f"{data_config.scene}: the {split} split has no window")
+        raise DataError(f"{data_config.scene}: the {split} split has no window")
     return window_set
 
 
@@ -233,7 +184,7 @@ def evaluate_run(run, data_config: DataConfig, split: str, *, num_samples: int =
                  devices: Devices | None = None) -> dict[str, Any]:
     """Evaluate a loaded model (`gst_jax.runs.Run`) on one split: the metrics of
     `evaluate_params` plus what was evaluated (scene, split, windows, epoch, protocol line)."""
-    window_set = _split_windows(data_config, split)
+    window_set = _split_windows(data_config, split, run.model_config.grid)
     result = evaluate_params(run.params, jax.random.key(seed), window_set, run.model_config,
                              num_samples=num_samples, with_kde=with_kde,
                              fully_detected_only=run.train_config.fully_detected_only,
@@ -250,20 +201,21 @@ def write_run_predictions(run, data_config: DataConfig, split: str, path: Path, 
                           progress: Progress | None = None) -> int:
     """Write K sampled futures of every window of the split to a TrajNet++ file (the samples
     `evaluate_run` scores with the same seed); returns the rows written."""
-    window_set = _split_windows(data_config, split)
+    window_set = _split_windows(data_config, split, run.model_config.grid)
     predicted = predict_windows(run.params, jax.random.key(seed), window_set, run.model_config,
                                 num_samples=num_samples,
                                 fully_detected_only=run.train_config.fully_detected_only,
                                 progress=progress)
-    return write_predictions(path, window_set, predicted, run.model_config.obs_len)
+    return write_predictions(path, window_set, predicted, run.model_config.grid)
 
 
 def evaluate_prediction_file(path: Path, data_config: DataConfig, split: str, *,
-                             obs_len: int = 8, with_kde: bool = True) -> dict[str, Any]:
-    """Score a TrajNet++ prediction file (ours or another model's) against a split's windows,
-    with the metrics of `evaluate_params`."""
-    window_set = _split_windows(data_config, split)
-    result = score(read_predictions(path, window_set, obs_len), obs_len=obs_len,
+                             grid: TimeGrid = TimeGrid(), with_kde: bool = True
+                             ) -> dict[str, Any]:
+    """Score a TrajNet++ prediction file (ours or another model's) against a split's windows
+    on the time grid of the predictions, with the metrics of `evaluate_params`."""
+    window_set = _split_windows(data_config, split, grid)
+    result = score(read_predictions(path, window_set, grid.obs_len), obs_len=grid.obs_len,
                    with_kde=with_kde)
     result.update(model=str(path), scene=data_config.scene, protocol_name=data_config.protocol,
                   split=split, windows=len(window_set),

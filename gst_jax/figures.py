@@ -1,10 +1,8 @@
 """Figures (matplotlib, Agg backend) from results already computed; nothing here is jitted.
 
 Fig. 3 (a prediction with its sampled graphs), one agent's attention over time, training
-curves, and sweep figures in the spirit of the paper's Figs. 4-6: errors against n for one scene,
-improvement of partial over fully detected observation per dataset and n, improvement of
-the best sparse n over full connection against crowd density, and the best n per dataset;
-and Table I as bars (ours, the paper's and constant velocity per scene).
+curves, and a sweep's errors against n (the paper's Fig. 4 for one scene). The figures of
+the tables and the cross-dataset study are experiments/_figures.py's.
 """
 
 from __future__ import annotations
@@ -13,8 +11,9 @@ from pathlib import Path
 from typing import Sequence
 
 import matplotlib
-import numpy as np
 
+# Figures are files, never windows: the one place matplotlib is set up, for every figure of
+# the package (gst_jax.simulate.figures imports `plt` and `save` from here).
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
@@ -22,14 +21,15 @@ DETECTION_STYLE = {"partial": dict(color="tab:blue", marker="o"),
                    "full": dict(color="tab:orange", marker="s")}
 
 
-def _n_label(n: int) -> str:
+def n_label(n: int) -> str:
     return "F" if n == 0 else str(n)
 
 
-def _save(fig, path: Path) -> Path:
+def save(fig, path: Path, dpi: int = 150) -> Path:
+    """Write `fig` to `path` (creating its folder) and close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=150, bbox_inches="tight")
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
     plt.close(fig)
     return path
 
@@ -46,88 +46,14 @@ def errors_against_n(results: dict, path: Path) -> Path:
         for ax, metric in zip(axes, ("aoe", "foe")):
             ax.errorbar(x, [r[metric] for r in rows], yerr=[r[metric + "_std"] for r in rows],
                         label=f"{detection} detection", capsize=3, **style)
-            ax.set_xticks(list(x), [_n_label(r["edge_heads"]) for r in rows])
+            ax.set_xticks(list(x), [n_label(r["edge_heads"]) for r in rows])
     for ax, metric in zip(axes, ("AOE", "FOE")):
         ax.set_xlabel("n (F = full connection)")
         ax.set_ylabel(f"{metric} (m)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{results['scene']}: {results['protocol']}", fontsize=7)
-    return _save(fig, path)
-
-
-def partial_vs_full_detection(all_results: Sequence[dict], path: Path) -> Path:
-    """Grouped bars: AOE improvement (%) of partial over fully detected, per dataset and n."""
-    fig, ax = plt.subplots(figsize=(7.0, 2.8))
-    scenes = [r["scene"] for r in all_results]
-    heads = sorted({int(n) for r in all_results for n in r["partial_vs_fully_detected"]})
-    width = 0.8 / max(len(heads), 1)
-    for k, n in enumerate(heads):
-        values = [r["partial_vs_fully_detected"].get(str(n), {}).get("aoe_pct", float("nan"))
-                  for r in all_results]
-        ax.bar([i + k * width for i in range(len(scenes))], values, width, label=f"n={_n_label(n)}")
-    ax.axhline(0, color="black", lw=0.8)
-    ax.set_xticks([i + 0.4 - width / 2 for i in range(len(scenes))], scenes)
-    ax.set_ylabel("AOE improvement,\npartial over full (%)")
-    ax.legend(fontsize=7, ncol=len(heads))
-    ax.grid(axis="y", alpha=0.3)
-    return _save(fig, path)
-
-
-def sparse_gain_against_density(all_results: Sequence[dict], path: Path) -> Path:
-    """Improvement of the best sparse n over full connection against crowd density."""
-    fig, ax = plt.subplots(figsize=(3.6, 2.8))
-    for r in all_results:
-        gain = r.get("sparse_vs_full_connection_partial")
-        if gain:
-            ax.scatter(r["density"], gain["aoe_pct"], color="tab:blue")
-            ax.annotate(r["scene"], (r["density"], gain["aoe_pct"]), fontsize=7,
-                        xytext=(3, 3), textcoords="offset points")
-    ax.axhline(0, color="black", lw=0.8)
-    ax.set_xlabel("partially detected pedestrians per window")
-    ax.set_ylabel("AOE improvement, best\nsparse n over full (%)")
-    ax.grid(alpha=0.3)
-    return _save(fig, path)
-
-
-def best_n_per_dataset(all_results: Sequence[dict], path: Path) -> Path:
-    """Bar per dataset: the best sparse n (by AOE, partial detection)."""
-    fig, ax = plt.subplots(figsize=(3.6, 2.8))
-    rows = [(r["scene"], r["best_n_partial"]) for r in all_results if "best_n_partial" in r]
-    ax.bar([s for s, _ in rows], [n for _, n in rows], color="tab:blue")
-    ax.set_yscale("log", base=2)
-    ax.set_ylabel("best n")
-    ax.grid(axis="y", alpha=0.3)
-    return _save(fig, path)
-
-
-def table1_against_paper(rows: Sequence[dict], path: Path, title: str,
-                         paper_label: str = "paper") -> Path:
-    """Grouped bars per scene, AOE and FOE: ours (± spread), the paper's, constant velocity.
-
-    rows: experiments/table1.py's rows; a scene without a finished run has no "ours" bar
-    and is marked "missing".
-    """
-    fig, axes = plt.subplots(1, 2, figsize=(8.0, 2.8))
-    x = np.arange(len(rows))
-    width = 0.27
-    for ax, metric in zip(axes, ("aoe", "foe")):
-        ours = [r.get(metric, np.nan) for r in rows]
-        ax.bar(x - width, ours, width, yerr=[r.get(f"{metric}_spread", 0.0) for r in rows],
-               capsize=2, color="tab:blue", label="ours")
-        ax.bar(x, [r[f"paper_{metric}"] for r in rows], width, color="tab:gray", label=paper_label)
-        ax.bar(x + width, [r[f"cv_{metric}"] for r in rows], width, color="tab:orange",
-               label="constant velocity")
-        for i, r in enumerate(rows):
-            if metric not in r:
-                ax.text(x[i] - width, 0.02, "missing", rotation=90, fontsize=6,
-                        ha="center", va="bottom")
-        ax.set_xticks(x, [r["scene"] for r in rows])
-        ax.set_ylabel(f"{metric.upper()} (m)")
-        ax.grid(axis="y", alpha=0.3)
-    axes[0].legend(fontsize=7)
-    fig.suptitle(title, fontsize=8)
-    return _save(fig, path)
+    return save(fig, path)
 
 
 # --- Seeing one prediction (the paper's Fig. 3) ------------------------------------------
@@ -189,11 +115,11 @@ def scene_prediction(observed, observed_mask, future, future_mask, samples, pred
         matrix_ax.set_xlabel("neighbour (g = ghost)", fontsize=7)
         matrix_ax.set_ylabel("target", fontsize=7)
     fig.tight_layout()
-    return _save(fig, path)
+    return save(fig, path)
 
 
-def attention_over_time(probabilities, present, agent: int, obs_len: int, path: Path,
-                        title: str = "", max_neighbours: int = 6) -> Path:
+def attention_over_time(probabilities, present, agent: int, obs_len: int, step_s: float,
+                        path: Path, title: str = "", max_neighbours: int = 6) -> Path:
     """One agent's selection probability of each neighbour and of the ghost per selector call.
 
     probabilities (S, N+1) (ghost last); present (N,) bool: neighbours to draw.
@@ -212,13 +138,13 @@ def attention_over_time(probabilities, present, agent: int, obs_len: int, path: 
     ax.plot(steps, probabilities[:, -1], "k--", label="ghost", lw=1.5)
     ax.axvline(obs_len + 0.5, color="tab:gray", lw=0.8)
     ax.text(obs_len + 0.7, 0.95, "prediction", fontsize=7, va="top")
-    ax.set_xlabel("selector call (0.4 s steps)")
+    ax.set_xlabel(f"selector call ({step_s:g} s steps)")
     ax.set_ylabel(f"attention of agent {agent}")
     ax.set_ylim(0, 1.02)
     ax.legend(fontsize=6, ncol=2)
     ax.set_title(title, fontsize=8)
     ax.grid(alpha=0.3)
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def training_curves(records: Sequence[dict], path: Path, title: str = "") -> Path:
@@ -240,4 +166,4 @@ def training_curves(records: Sequence[dict], path: Path, title: str = "") -> Pat
         axes[0, 1].grid(alpha=0.3)
     fig.suptitle(title, fontsize=8)
     fig.tight_layout()
-    return _save(fig, path)
+    return save(fig, path)

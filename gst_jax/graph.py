@@ -39,16 +39,6 @@ def edge_features(positions: jax.Array, node_mask: jax.Array) -> jax.Array:
     return relative * adjacency(node_mask)[..., None]
 
 
-def fully_detected_mask(node_mask: jax.Array) -> jax.Array:
-    """1 for pedestrians valid at every step (docs/MODEL.md 1.8).  (..., T, N) -> (..., N)."""
-    return jnp.min(node_mask, axis=-2)
-
-
-def keep_mask(node_mask: jax.Array, obs_len: int) -> jax.Array:
-    """Pedestrians that will be predicted: valid at the last observed step.  -> (..., N)."""
-    return node_mask[..., obs_len - 1, :]
-
-
 def float_mask_attention_weights(scores: jax.Array, mask: jax.Array) -> jax.Array:
     """The release's attention: softmax, multiply by a float mask, renormalise (+1e-10).
 
@@ -68,7 +58,7 @@ def masked_categorical(logits: jax.Array, mask: jax.Array) -> jax.Array:
 def drop_partially_detected(batch: SceneBatch, enabled: jax.Array | bool) -> SceneBatch:
     """Remove partially detected pedestrians from every scene when `enabled` (may be traced):
     the paper's "F" baseline, which observes only pedestrians tracked for the whole window."""
-    keep = jnp.where(enabled, fully_detected_mask(batch.node_mask), 1.0)[:, None, :]
+    keep = jnp.where(enabled, batch.fully_detected_mask, 1.0)[:, None, :]
     return batch._replace(positions=batch.positions * keep[..., None],
                                position_mask=batch.position_mask * keep,
                                node_mask=batch.node_mask * keep)

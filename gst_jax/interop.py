@@ -1,34 +1,26 @@
-"""Interoperability with the authors' PyTorch release.
+"""Interoperability with the authors' PyTorch release: its weights as gst_jax parameters and
+back.
 
 - `params_from_torch`: a release state dict (torch names -> arrays, or a `.pt` file when
   torch is installed) -> gst_jax parameters in the traced-n layout.
-- `reference_forward` / `reference_loss_and_grads`: replay one release run (its inputs,
-  Gumbel noise and normals) and return the outputs, loss and gradients in the release's own
-  names and layouts, so that they compare array for array with the parity fixture.
+- `params_to_torch`: gst_jax parameters (or gradients) -> the release's names and layouts.
 
 torch is not a dependency; `.pt` files need it, plain mappings of numpy arrays do not.
+Replaying a release run for the parity tests is `gst_jax.testing.release`.
 """
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gst_jax import losses
 from gst_jax.config import ModelConfig
-from gst_jax.data import SceneBatch
-from gst_jax.data.batch import node_mask_from_positions
-from gst_jax.model import Controls
-from gst_jax.rollout import RolloutNoise, rollout_with_noise
 
 SELECTOR = "gumbel_social_transformer.edge_selector."
 ENCODER = "gumbel_social_transformer.node_encoder_layers.{}."
-MISSING = -999.0  # the release marks undetected positions with this value
 
 
 def load_state_dict(source: str | Path | Mapping[str, Any]) -> dict[str, np.ndarray]:
@@ -107,37 +99,6 @@ def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
     return params
 
 
-def batch_from_reference_inputs(inputs: Mapping[str, np.ndarray]) -> SceneBatch:
-    """One-scene SceneBatch from the release's `obs_traj`/`pred_traj` (1, N, 2, T), -999 = missing."""
-    trajectory = np.concatenate([inputs["obs_traj"], inputs["pred_traj"]], axis=-1)[0]
-    positions = np.transpose(trajectory, (2, 0, 1)).astype(np.float32)        # (T, N, 2)
-    position_mask = np.all(positions != MISSING, axis=-1).astype(np.float32)
-    positions = np.where(position_mask[..., None] > 0, positions, 0.0)
-    return SceneBatch(positions=positions[None], position_mask=position_mask[None],
-                      node_mask=node_mask_from_positions(position_mask)[None],
-                      scene_mask=np.ones((1,), np.float32),
-                      window_index=np.zeros((1,), np.int32))
-
-
-def noise_from_reference(gumbel: Sequence[np.ndarray], normals: Sequence[np.ndarray] | None,
-                         num_nodes: int, config: ModelConfig) -> RolloutNoise:
-    """Pad the release's per-call noise (.., N, n, N(+1)) into the (.., N, G, N+1) layout."""
-    head_slots, neighbours = config.head_slots, num_nodes + 1
-    if gumbel:
-        padded = [np.pad(g, [(0, 0), (0, 0), (0, head_slots - g.shape[2]),
-                             (0, neighbours - g.shape[3])]) for g in gumbel]
-    else:  # n = 0: no selector, no noise
-        padded = [np.zeros((config.obs_len if k == 0 else 1, num_nodes, head_slots, neighbours))
-                  for k in range(config.pred_len)]
-    if normals is None:
-        normal = np.zeros((config.pred_len, 1, num_nodes, 2), np.float32)
-    else:
-        normal = np.stack([np.reshape(e, (1, num_nodes, 2)) for e in normals])
-    return RolloutNoise(gumbel_obs=jnp.asarray(padded[0][None], jnp.float32),
-                        gumbel_pred=jnp.asarray(np.stack(padded[1:]), jnp.float32),
-                        normal=jnp.asarray(normal, jnp.float32))
-
-
 def params_to_torch(params, *, num_edge_heads: int, config: ModelConfig | None = None) -> dict:
     """Inverse of `params_from_torch`: gst_jax parameters (or gradients) -> torch names/layout.
 
@@ -179,62 +140,3 @@ def params_to_torch(params, *, num_edge_heads: int, config: ModelConfig | None =
     out["lstm.bias_ih_l0"], out["lstm.bias_hh_l0"] = lstm["bias_ih"], lstm["bias_hh"]
     dense("hidden2pos.", params["hidden2pos"])
     return {name: np.asarray(value) for name, value in out.items()}
-
-
-@functools.partial(jax.jit, static_argnames=("config", "hard", "return_attention"))
-def _replay(params, batch, noise, controls, *, config, hard, return_attention):
-    """Loss and outputs of one replayed run. n and ghost are traced: one compile per shape."""
-    out = rollout_with_noise(params, noise, batch, config, controls, hard=hard,
-                             return_attention=return_attention)
-    return losses.batch_loss(config, out, batch), out
-
-
-def _replay_inputs(state_dict, inputs, gumbel, normals, *, num_edge_heads, ghost, tau, output,
-                   max_edge_heads):
-    config = ModelConfig(max_edge_heads=max_edge_heads, output=output)
-    params = params_from_torch(load_state_dict(state_dict), num_edge_heads=num_edge_heads,
-                               ghost=ghost, config=config)
-    batch = batch_from_reference_inputs(inputs)
-    noise = noise_from_reference(gumbel, normals, batch.shape[2], config)
-    return config, params, batch, noise, Controls.make(tau, num_edge_heads, ghost)
-
-
-def reference_forward(state_dict, inputs: Mapping[str, np.ndarray], gumbel: Sequence[np.ndarray],
-                      *, num_edge_heads: int, ghost: bool, tau: float, hard: bool,
-                      normals: Sequence[np.ndarray] | None = None,
-                      output: str = "deterministic", max_edge_heads: int = 16) -> dict:
-    """Replay one release forward pass; outputs in the release's layouts (see the fixture)."""
-    config, params, batch, noise, controls = _replay_inputs(
-        state_dict, inputs, gumbel, normals, num_edge_heads=num_edge_heads, ghost=ghost,
-        tau=tau, output=output, max_edge_heads=max_edge_heads)
-    loss, out = _replay(params, batch, noise, controls, config=config, hard=hard,
-                        return_attention=True)
-    heads = max(num_edge_heads, 1)
-    neighbours = batch.shape[2] + 1 if ghost else batch.shape[2]
-    edges = lambda a: np.asarray(a[0, :, :, :heads, :neighbours])
-    return {"mu": np.asarray(out.mu), "sx": np.asarray(out.sigma[..., :1]),
-            "sy": np.asarray(out.sigma[..., 1:]), "corr": np.asarray(out.corr[..., None]),
-            "x_pred": np.asarray(out.displacements),
-            "edge_multinomial": edges(out.edge_probs), "sampled_edges": edges(out.sampled_edges),
-            "attn_weights": np.asarray(out.attention[:, 0, ..., :neighbours]),
-            "loss": np.asarray(loss)}
-
-
-def reference_loss_and_grads(state_dict, inputs: Mapping[str, np.ndarray],
-                             gumbel: Sequence[np.ndarray], *, num_edge_heads: int, ghost: bool,
-                             tau: float, hard: bool, normals: Sequence[np.ndarray] | None = None,
-                             output: str = "deterministic",
-                             max_edge_heads: int = 16) -> tuple[np.ndarray, dict]:
-    """Loss of one replayed release run and its gradients, keyed by torch names, torch layout."""
-    config, params, batch, noise, controls = _replay_inputs(
-        state_dict, inputs, gumbel, normals, num_edge_heads=num_edge_heads, ghost=ghost,
-        tau=tau, output=output, max_edge_heads=max_edge_heads)
-    loss, grads = _replay_value_and_grad(params, batch, noise, controls, config=config, hard=hard)
-    return np.asarray(loss), params_to_torch(grads, num_edge_heads=num_edge_heads, config=config)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "hard"))
-def _replay_value_and_grad(params, batch, noise, controls, *, config, hard):
-    loss_only = lambda p: _replay(p, batch, noise, controls, config=config, hard=hard,
-                                  return_attention=False)[0]
-    return jax.value_and_grad(loss_only)(params)

@@ -1,23 +1,70 @@
-"""Trajectory metrics (docs/MODEL.md 4), numpy only, as sums so batches can be accumulated.
+"""Trajectory metrics (docs/MODEL.md 4), numpy only, as running sums over batches.
 
-Shapes: K samples, B scenes, P predicted steps, N pedestrian slots. `mask` (B, N) selects the
-pedestrians evaluated (fully detected, real scenes).
+A metric is one function of a `Scored` batch returning `Ratio`s by name, and one line in
+`METRICS`; `summarize` turns the summed ratios into the reported figures: a ratio with a
+per-run axis (K,) gives its mean over runs and, as `<name>_std`, their spread.
+
+Shapes: K samples (the paper's runs), B scenes, P predicted steps, N pedestrian slots.
 """
 
 from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple
 
 import numpy as np
 from scipy import stats
 
 # Trajectron++ clips the log density of the truth below at this value.
 KDE_LOG_DENSITY_FLOOR = -20.0
-# Two pedestrians closer than this (metres) at the same step collide.
+# Two pedestrians whose predicted (or true) positions at the same step are closer than this
+# (metres) collide. Not `simulate.ROBOT_COLLISION_DISTANCE`, a robot's clearance.
 COLLISION_DISTANCE = 0.1
+# TrajNet++ (Kothari et al. 2021): a pedestrian is a disc of radius 0.1 m; two collide when
+# their discs touch at a step or half-way between consecutive steps.
+TRAJNET_PERSON_RADIUS = 0.1
 
 
-def fully_detected_mask(node_mask: np.ndarray) -> np.ndarray:
-    """1 for pedestrians valid at every step.  (B, T, N) -> (B, N)."""
-    return np.min(np.asarray(node_mask), axis=-2)
+@dataclasses.dataclass(frozen=True)
+class Scored:
+    """One batch of sampled futures and what they are scored against (numpy arrays).
+
+    pred: (K, B, P, N, 2) sampled positions, NaN where nobody was predicted; None when only a
+      baseline is scored. truth: (B, P, N, 2). scored_mask: (B, N) the pedestrians scored
+      (fully detected, real scenes). predicted_mask: (B, N) those predicted. truth_step_mask:
+      (B, P, N) where the truth exists. observed, observed_node_mask: (B, T_obs, N, 2) and
+      (B, T_obs, N), for baselines.
+    """
+
+    pred: np.ndarray | None
+    truth: np.ndarray
+    scored_mask: np.ndarray
+    predicted_mask: np.ndarray
+    truth_step_mask: np.ndarray
+    observed: np.ndarray
+    observed_node_mask: np.ndarray
+
+    @property
+    def errors(self) -> np.ndarray:
+        """(K, B, P, N) distance of each sample to the truth."""
+        return offset_errors(self.pred, self.truth)
+
+    def over_scored(self, values: np.ndarray) -> np.ndarray:
+        """values (..., B, N) summed over the scored pedestrians -> (...). Pedestrians outside
+        the mask may have no prediction (NaN): they add exactly nothing."""
+        mask = np.asarray(self.scored_mask, np.float64)
+        return np.sum(np.where(mask > 0, values * mask, 0.0), axis=(-2, -1))
+
+    @property
+    def count(self) -> float:
+        return float(np.sum(self.scored_mask))
+
+
+class Ratio(NamedTuple):
+    """A metric's running sums: its value is total / count. total () or (K,) per run."""
+
+    total: np.ndarray
+    count: float
 
 
 def offset_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -25,43 +72,35 @@ def offset_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.asarray(pred) - np.asarray(truth)[None], axis=-1)
 
 
-def aoe_foe_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
-    """Per sample (run) k, the sums over pedestrians of AOE (mean over steps) and FOE (last step).
-
-    pred (K, B, P, N, 2), truth (B, P, N, 2), mask (B, N) ->
-    {"aoe_sum": (K,), "foe_sum": (K,), "count": ()}.
-    """
-    errors = offset_errors(pred, truth)
-    mask = np.asarray(mask, np.float64)
-    # Pedestrians outside the mask may have no prediction (NaN): they add exactly nothing.
-    return {"aoe_sum": np.sum(np.where(mask > 0, errors.mean(axis=2) * mask, 0.0), axis=(1, 2)),
-            "foe_sum": np.sum(np.where(mask > 0, errors[:, :, -1] * mask, 0.0), axis=(1, 2)),
-            "count": np.sum(mask)}
+def aoe_foe(s: Scored) -> dict[str, Ratio]:
+    """Per run k: AOE (error averaged over the steps) and FOE (at the last step), averaged
+    over the scored pedestrians: the paper's metrics, with their spread over runs."""
+    errors = s.errors
+    return {"aoe": Ratio(s.over_scored(errors.mean(axis=2)), s.count),
+            "foe": Ratio(s.over_scored(errors[:, :, -1]), s.count)}
 
 
-def release_spread_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
-    """The release's "std" (its scripts/eval.py; docs/MODEL.md 4), as sums over windows: per
-    window, the standard deviation (ddof 1, torch's default) across the K runs of the
-    window's summed AOE (or FOE). Divided by the pedestrian count, it is the release's figure.
-
-    pred (K, B, P, N, 2), truth (B, P, N, 2), mask (B, N) ->
-    {"aoe_window_std_sum": (), "foe_window_std_sum": ()}.
-    """
-    errors = offset_errors(pred, truth)
-    mask = np.asarray(mask, np.float64)
-    ddof = 1 if pred.shape[0] > 1 else 0
-    per_window = {name: np.sum(np.where(mask > 0, value * mask, 0.0), axis=-1)     # (K, B)
-                  for name, value in (("aoe", errors.mean(axis=2)), ("foe", errors[:, :, -1]))}
-    return {f"{name}_window_std_sum": np.sum(np.std(value, axis=0, ddof=ddof))
-            for name, value in per_window.items()}
+def min_ade_fde(s: Scored) -> dict[str, Ratio]:
+    """Best-of-K: per pedestrian the smallest ADE and (independently) the smallest FDE."""
+    errors = s.errors
+    return {"min_ade": Ratio(s.over_scored(errors.mean(axis=2).min(axis=0)), s.count),
+            "min_fde": Ratio(s.over_scored(errors[:, :, -1].min(axis=0)), s.count)}
 
 
-def min_ade_fde_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
-    """Best-of-K: per pedestrian the smallest ADE and (independently) the smallest FDE, summed."""
-    errors = offset_errors(pred, truth)
-    mask = np.asarray(mask, np.float64)
-    return {"min_ade_sum": np.sum(np.where(mask > 0, errors.mean(axis=2).min(axis=0) * mask, 0.0)),
-            "min_fde_sum": np.sum(np.where(mask > 0, errors[:, :, -1].min(axis=0) * mask, 0.0))}
+def release_spread(s: Scored) -> dict[str, Ratio]:
+    """The release's "std" (its scripts/eval.py; docs/MODEL.md 4): per window, the standard
+    deviation (ddof 1, torch's default) across the K runs of the window's summed AOE (or FOE),
+    summed over windows and divided by the pedestrian count."""
+    errors = s.errors
+    mask = np.asarray(s.scored_mask, np.float64)
+    ddof = 1 if errors.shape[0] > 1 else 0
+
+    def spread(per_pedestrian):                                      # (K, B, N)
+        per_window = np.sum(np.where(mask > 0, per_pedestrian * mask, 0.0), axis=-1)
+        return Ratio(np.sum(np.std(per_window, axis=0, ddof=ddof)), s.count)
+
+    return {"release_aoe_std": spread(errors.mean(axis=2)),
+            "release_foe_std": spread(errors[:, :, -1])}
 
 
 def kde_log_density(samples: np.ndarray, point: np.ndarray) -> float:
@@ -77,18 +116,19 @@ def kde_log_density(samples: np.ndarray, point: np.ndarray) -> float:
     return max(log_density, KDE_LOG_DENSITY_FLOOR) if np.isfinite(log_density) else KDE_LOG_DENSITY_FLOOR
 
 
-def kde_nll_sums(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> dict:
-    """Trajectron++ KDE NLL: per pedestrian, minus the mean over steps of the clipped log density.
 
-    -> {"nll_sum": (), "count": ()} summed over the pedestrians in `mask`.
-    """
-    pred, truth = np.asarray(pred, np.float64), np.asarray(truth, np.float64)
-    total, count = 0.0, 0
-    for b, n in zip(*np.nonzero(np.asarray(mask) > 0)):
+def kde_nll(s: Scored) -> dict[str, Ratio]:
+    """Trajectron++ KDE NLL: per pedestrian, minus the mean over steps of the clipped log
+    density of the truth under the K samples. scipy's 2-D KDE needs more samples than
+    dimensions: none with K <= 2."""
+    if s.pred.shape[0] <= 2:
+        return {}
+    pred, truth = np.asarray(s.pred, np.float64), np.asarray(s.truth, np.float64)
+    total = 0.0
+    for b, n in zip(*np.nonzero(np.asarray(s.scored_mask) > 0)):
         steps = [kde_log_density(pred[:, b, t, n], truth[b, t, n]) for t in range(pred.shape[2])]
         total -= float(np.mean(steps))
-        count += 1
-    return {"nll_sum": total, "count": count}
+    return {"kde_nll": Ratio(np.float64(total), s.count)}
 
 
 def collision_sums(positions: np.ndarray, mask: np.ndarray,
@@ -114,20 +154,27 @@ def collision_sums(positions: np.ndarray, mask: np.ndarray,
         pairs, collided.shape[:-3]).astype(float)
 
 
-# TrajNet++ (Kothari et al. 2021): a pedestrian is a disc of radius 0.1 m; two collide when
-# their discs touch at a step or half-way between consecutive steps.
-TRAJNET_PERSON_RADIUS = 0.1
+
+def collision_rates(s: Scored) -> dict[str, Ratio]:
+    """Pairs of predicted pedestrians that come closer than COLLISION_DISTANCE, in the
+    samples (over all runs) and in the truth."""
+    predicted, pairs = collision_sums(s.pred, s.predicted_mask)
+    true, true_pairs = collision_sums(s.truth, s.predicted_mask, s.truth_step_mask)
+    return {"collision_rate": Ratio(np.sum(predicted), float(np.sum(pairs))),
+            "truth_collision_rate": Ratio(true, float(true_pairs))}
 
 
-def trajnet_collision_sums(pred: np.ndarray, truth: np.ndarray, primary_mask: np.ndarray,
-                           predicted_mask: np.ndarray, truth_step_mask: np.ndarray) -> dict:
+def trajnet_collisions_by_primary(pred: np.ndarray, truth: np.ndarray, primary_mask: np.ndarray,
+                                  predicted_mask: np.ndarray,
+                                  truth_step_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """TrajNet++'s Col-I and Col-II with every pedestrian of `primary_mask` as primary in turn.
 
     Col-I: the primary's predicted path meets another pedestrian's predicted path (same
     sample); Col-II: it meets another pedestrian's ground truth, over the segments whose both
     ends exist. TrajNet++ interpolates each segment at 2 parts (its ends and its midpoint).
     pred (K, B, P, N, 2), truth (B, P, N, 2), primary_mask / predicted_mask (B, N),
-    truth_step_mask (B, P, N) -> {"col1_sum": (K,), "col2_sum": (K,), "count": ()}.
+    truth_step_mask (B, P, N) -> the primaries meeting others per sample, (K,) each for Col-I
+    and Col-II.
     """
     pred = np.nan_to_num(np.asarray(pred, np.float64))
     truth = np.asarray(truth, np.float64)
@@ -151,9 +198,17 @@ def trajnet_collision_sums(pred: np.ndarray, truth: np.ndarray, primary_mask: np
     truth_valid = np.concatenate([valid, segment_valid], axis=1)        # (B, 2P-1, N)
     predicted = np.asarray(predicted_mask) > 0
     predicted_valid = np.broadcast_to(predicted[:, None], truth_valid.shape)
-    return {"col1_sum": meets(pred, predicted_valid).sum(axis=(1, 2)).astype(float),
-            "col2_sum": meets(truth, truth_valid).sum(axis=(1, 2)).astype(float),
-            "count": float(primary.sum())}
+    return (meets(pred, predicted_valid).sum(axis=(1, 2)).astype(float),
+            meets(truth, truth_valid).sum(axis=(1, 2)).astype(float))
+
+
+
+def trajnet_collisions(s: Scored) -> dict[str, Ratio]:
+    """TrajNet++'s Col-I (against the predicted neighbours) and Col-II (against the true
+    ones), every scored pedestrian taken as primary in turn, per run."""
+    col_i, col_ii = trajnet_collisions_by_primary(s.pred, s.truth, s.scored_mask,
+                                                  s.predicted_mask, s.truth_step_mask)
+    return {"col_i": Ratio(col_i, s.count), "col_ii": Ratio(col_ii, s.count)}
 
 
 def constant_velocity(obs_positions: np.ndarray, obs_node_mask: np.ndarray, *,
@@ -167,3 +222,45 @@ def constant_velocity(obs_positions: np.ndarray, obs_node_mask: np.ndarray, *,
     velocity = (obs_positions[:, -1] - obs_positions[:, -2]) * np.asarray(obs_node_mask)[:, -1, :, None]
     steps = np.arange(1, pred_len + 1)[None, :, None, None]
     return obs_positions[:, -1][:, None] + steps * velocity[:, None]
+
+
+def constant_velocity_errors(s: Scored) -> dict[str, Ratio]:
+    """AOE / FOE of the constant-velocity baseline on the same pedestrians."""
+    future = constant_velocity(s.observed, s.observed_node_mask, pred_len=s.truth.shape[1])
+    errors = offset_errors(future[None], s.truth)[0]
+    return {"cv_aoe": Ratio(s.over_scored(errors.mean(axis=1)), s.count),
+            "cv_foe": Ratio(s.over_scored(errors[:, -1]), s.count)}
+
+
+# Every metric of an evaluation, in the order of its report.
+METRICS: dict[str, Callable[[Scored], dict[str, Ratio]]] = {
+    "aoe_foe": aoe_foe,
+    "min_ade_fde": min_ade_fde,
+    "release_spread": release_spread,
+    "kde_nll": kde_nll,
+    "collisions": collision_rates,
+    "trajnet_collisions": trajnet_collisions,
+    "constant_velocity": constant_velocity_errors,
+}
+# Those that need no model's samples.
+BASELINES = ("constant_velocity",)
+
+
+def accumulate(totals: dict[str, Ratio], ratios: dict[str, Ratio]) -> None:
+    """Add one batch's ratios to the running `totals` (in place)."""
+    for name, ratio in ratios.items():
+        if name in totals:
+            ratio = Ratio(totals[name].total + ratio.total, totals[name].count + ratio.count)
+        totals[name] = Ratio(np.asarray(ratio.total, np.float64), ratio.count)
+
+
+def summarize(totals: dict[str, Ratio]) -> dict[str, float]:
+    """Each ratio's value; one with a per-run axis: its mean over runs and `<name>_std`."""
+    result = {}
+    for name, ratio in totals.items():
+        value = ratio.total / max(ratio.count, 1.0)
+        if np.ndim(value):
+            result[name], result[f"{name}_std"] = float(np.mean(value)), float(np.std(value))
+        else:
+            result[name] = float(value)
+    return result

@@ -76,7 +76,7 @@ def standard_normal_quantile(u: jax.Array) -> jax.Array:
     return jnp.sqrt(jnp.float32(2.0)) * jax.lax.erf_inv(2.0 * u - 1.0)
 
 
-def keep_mask(key: jax.Array, shape: Sequence[int], rate: float, *,
+def dropout_mask(key: jax.Array, shape: Sequence[int], rate: float, *,
               ghost_axis: int | None = None) -> jax.Array:
     """bool Bernoulli(1 - rate) of `shape` (dropout's keep mask), exact to 2^-32."""
     bits = element_bits(key, shape, ghost_axis=ghost_axis)

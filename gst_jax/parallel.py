@@ -21,11 +21,9 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from gst_jax.errors import DeviceError
+
 DATA = "data"
-
-
-class DeviceError(ValueError):
-    """Devices asked for that this machine or these processes do not have."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,7 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from gst_jax import cli, run_figures
-from gst_jax.runs import WorkDir, load_model
+from gst_jax.io.workdir import WorkDir
+from gst_jax.runs import load_model
 
 COMMANDS = {
     "scene": "observed, true and K predicted paths, sampled graphs and adjacency matrices of "

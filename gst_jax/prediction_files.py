@@ -23,10 +23,9 @@ from typing import Iterable, Iterator, NamedTuple
 import numpy as np
 
 from gst_jax import data
-from gst_jax.data import DataError, SceneBatch
-from gst_jax.metrics import fully_detected_mask
-
-MODEL_RATE_HZ = 2.5
+from gst_jax.config import TimeGrid
+from gst_jax.data import SceneBatch
+from gst_jax.errors import DataError
 
 
 class PredictedBatch(NamedTuple):
@@ -42,8 +41,9 @@ class PredictedBatch(NamedTuple):
 
 
 def write_predictions(path: Path, window_set: data.WindowSet,
-                      predicted: Iterable[PredictedBatch], obs_len: int) -> int:
-    """Write every window's observations and sampled futures; returns the rows written.
+                      predicted: Iterable[PredictedBatch], grid: TimeGrid) -> int:
+    """Write every window's observations and sampled futures on the model's time `grid`;
+    returns the rows written.
 
     The file appears only when complete (written beside it, then renamed).
     """
@@ -55,7 +55,7 @@ def write_predictions(path: Path, window_set: data.WindowSet,
                     continue
                 window = window_set[int(index)]
                 lines = _window_rows(int(index), window, positions[:, b], predicted_mask[b],
-                                     obs_len)
+                                     grid)
                 out.write("".join(line + "\n" for line in lines))
                 rows += len(lines)
     os.replace(partial, path)
@@ -63,13 +63,14 @@ def write_predictions(path: Path, window_set: data.WindowSet,
 
 
 def _window_rows(index: int, window: data.Window, futures: np.ndarray, predicted: np.ndarray,
-                 obs_len: int) -> list[str]:
+                 grid: TimeGrid) -> list[str]:
     """futures (K, P, N, 2) relative to the window's origin; predicted (N,)."""
+    obs_len = grid.obs_len
     ids = [int(p) for p in window.pedestrian_ids]
     slots = [n for n in range(len(ids)) if predicted[n] > 0]
     first, last = window.frame_range
     lines = [json.dumps({"scene": {"id": index, "p": ids[slots[0]] if slots else ids[0],
-                                   "s": first, "e": last, "fps": MODEL_RATE_HZ, "tag": 0}})]
+                                   "s": first, "e": last, "fps": grid.hz, "tag": 0}})]
     for t, n in zip(*np.nonzero(window.position_mask[:obs_len])):
         x, y = window.positions[t, n] + window.origin
         lines.append(json.dumps({"track": {"f": _frame(window, t), "p": ids[n],
@@ -88,8 +89,8 @@ def _frame(window: data.Window, step: int) -> int:
     return int(window.start_frame + step * window.frame_step)
 
 
-def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int, *,
-                     edge_budget: int = 16384) -> Iterator[PredictedBatch]:
+def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int
+                     ) -> Iterator[PredictedBatch]:
     """The predictions of a TrajNet++ file for the windows of `window_set`, in the batches of
     `data.evaluation_batches`. Every fully detected pedestrian (those scored) must have all K
     samples at every future step; a `DataError` names the file, line and what was wrong."""
@@ -97,11 +98,11 @@ def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int, *,
     num_samples = 1 + max((k for (_, _, _, k) in samples), default=-1)
     if num_samples == 0:
         raise DataError(f"{path}: no predicted track (rows with a prediction_number)")
-    for batch in data.evaluation_batches(window_set, edge_budget=edge_budget):
+    for batch in data.evaluation_batches(window_set):
         scene_count, steps, slots = batch.positions.shape[:3]
         pred_len = steps - obs_len
         positions = np.full((num_samples, scene_count, pred_len, slots, 2), np.nan, np.float32)
-        scored = fully_detected_mask(batch.node_mask) * batch.scene_mask[:, None]
+        scored = batch.fully_detected_mask * batch.scene_mask[:, None]
         for b, index in enumerate(np.asarray(batch.window_index)):
             if not batch.scene_mask[b]:
                 continue

@@ -24,7 +24,7 @@ from gst_jax import graph, noise
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.gumbel import sample_gumbel
-from gst_jax.model import GST, Controls
+from gst_jax.model import GST, Controls, heads
 
 __all__ = ["Controls", "RolloutNoise", "RolloutOutput", "observed_edge_probabilities", "rollout",
            "rollout_with_noise"]
@@ -114,15 +114,6 @@ def rollout_with_noise(params, noise: RolloutNoise, batch: SceneBatch, config: M
                     deterministic=deterministic, return_attention=return_attention)
 
 
-def sample_displacement(mu: jax.Array, sigma: jax.Array, corr: jax.Array,
-                        normal: jax.Array) -> jax.Array:
-    """Reparameterised bivariate Gaussian draw: mu + (sx e1, rho sy e1 + sqrt(1-rho^2) sy e2)."""
-    e1, e2 = normal[..., 0], normal[..., 1]
-    dx = sigma[..., 0] * e1
-    dy = sigma[..., 1] * (corr * e1 + jnp.sqrt(1.0 - corr ** 2) * e2)
-    return mu + jnp.stack([dx, dy], axis=-1)
-
-
 class RolloutKeys(NamedTuple):
     """The keys of one window's rollout, split once by purpose."""
 
@@ -183,7 +174,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
     obs_len, pred_len = config.obs_len, config.pred_len
     num_nodes = window.node_mask.shape[-1]
     noise_shape = (num_nodes, config.head_slots, num_nodes + 1)
-    gaussian = config.output == "gaussian"
+    head = heads.head(config.output)
     keys = RolloutKeys.split(key)
 
     def apply(method, *args, key=None, **kwargs):
@@ -191,8 +182,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
         return model.apply({"params": params}, *args, method=method, rngs=rngs, **kwargs)
 
     def draw(mu, sigma, corr, normal, keep):
-        delta = sample_displacement(mu, sigma, corr, normal) if gaussian else mu
-        return delta * keep[..., None]
+        return head.draw(mu, sigma, corr, normal) * keep[..., None]
 
     # --- Observation: one selector/encoder call over all observed steps.
     node_features, edge_features, node_mask = _observed_inputs(window, obs_len)
@@ -205,7 +195,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
         GST.interact, node_features, edge_features, node_mask, gumbel_obs, controls,
         hard=hard, deterministic=deterministic, key=keys.dropout_obs,
         edge_probs=observed_edge_probs)
-    keep = graph.keep_mask(window.node_mask, obs_len)                           # (N,)
+    keep = window.predicted_mask(obs_len)                                     # (N,)
 
     if config.temporal == "tcn":
         # Readout: every predicted step from the observed encodings; no further interaction.
@@ -243,7 +233,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
         if gumbel is None:
             gumbel = sample_gumbel(gumbel_key, noise_shape)
         # Sampled displacements feed back detached (the release's `detach_sample`).
-        fed_back = jax.lax.stop_gradient(carry.delta) if gaussian else carry.delta
+        fed_back = jax.lax.stop_gradient(carry.delta) if head.sampled else carry.delta
         edges = carry.edges + fed_back[:, None, :] - fed_back[None, :, :]
         encoded, probs, sampled, attention = apply(
             GST.interact, fed_back, edges, keep, gumbel, controls, hard=hard,

@@ -14,14 +14,16 @@ import numpy as np
 
 from gst_jax import data, figures
 from gst_jax.config import DataConfig
+from gst_jax.errors import RunError
+from gst_jax.io.workdir import WorkDir
 from gst_jax.predict import Prediction, make_predict
-from gst_jax.runs import Run, RunError, WorkDir
+from gst_jax.runs import Run
 
 
 def predict_window(run: Run, data_config: DataConfig, index: int, samples: int, seed: int
                    ) -> tuple[data.Window, data.SceneBatch, Prediction]:
     """K samples (with graphs) of test window `index`, unpadded; arrays as numpy."""
-    window_set = data.load_split(data_config, "test")
+    window_set = data.load_split(data_config, "test", run.model_config.grid)
     if not 0 <= index < len(window_set):
         raise RunError(f"window {index} out of range: {data_config.scene} test has "
                        f"{len(window_set)} windows")
@@ -44,7 +46,7 @@ def scene_figure(run: Run, data_config: DataConfig, index: int, out: Path, *, sa
     middle = (run.model_config.pred_len - 1) // 2
     # A velocity needs both of the last two observed positions (not a zero-filled one).
     velocity = ((positions[obs_len - 1] - positions[obs_len - 2])
-                * (mask[obs_len - 1] * mask[obs_len - 2])[:, None])
+                * batch.predicted_mask(obs_len)[0][:, None])
     last_obs = (prediction.sampled_adjacency[0, 0, obs_len - 1], positions[obs_len - 1],
                 velocity, mask[obs_len - 1] > 0)
     columns, labels = [last_obs], [f"t = {obs_len} (last observed)"]
@@ -75,7 +77,7 @@ def attention_figure(run: Run, data_config: DataConfig, index: int, agent: int, 
     probabilities = prediction.edge_probs[0, 0, :, agent, :n].mean(axis=1)     # (S, N+1)
     present = batch.position_mask[0].max(axis=0) > 0
     return figures.attention_over_time(
-        probabilities, present, agent, run.model_config.obs_len, out,
+        probabilities, present, agent, run.model_config.obs_len, run.model_config.step_s, out,
         f"{data_config.scene} test window {index}, agent {agent}, epoch {run.epoch}")
 
 

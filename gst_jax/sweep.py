@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from gst_jax import cli
-from gst_jax.runs import RUNS, sweep_name
+from gst_jax.io.workdir import RUNS, sweep_name
 from gst_jax.training.members import plan_members, sweep_model_config
 from gst_jax.training.sweep import fit_sweep, format_markdown
 

@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from gst_jax import cli
-from gst_jax.runs import RUNS, run_name
+from gst_jax.io.workdir import RUNS, run_name
 from gst_jax.training.loop import fit
 
 

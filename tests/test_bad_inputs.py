@@ -14,6 +14,8 @@ import pytest
 import gst_jax
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.errors import DataError, RunError
+from gst_jax.io.workdir import WorkDir
 from gst_jax.training.loop import fit
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
@@ -53,7 +55,7 @@ def test_a_row_off_the_frame_grid_is_refused_with_its_line(tmp_path):
     rows = _walkers(range(0, 300, 10))
     rows.insert(40, "123 1 6.15 0.3")                 # one row off the grid of 10
     path = _write(tmp_path / "off.txt", rows)
-    with pytest.raises(data.DataError, match=rf"{path}:41: frame 123 is off the file's grid "
+    with pytest.raises(DataError, match=rf"{path}:41: frame 123 is off the file's grid "
                                              r"\(every 10 frames from 0\); 1 row\(s\)"):
         data.read_tracks(path)
     with pytest.warns(UserWarning, match=r"dropped 1 row\(s\) off the grid of every 10 frames"):
@@ -65,7 +67,7 @@ def test_a_row_off_the_frame_grid_is_refused_with_its_line(tmp_path):
 def test_a_pedestrian_sampled_on_another_phase_is_refused(tmp_path):
     rows = _walkers(range(0, 300, 10)) + [f"{f} 9 1.0 1.0" for f in range(5, 100, 10)]
     path = _write(tmp_path / "phase.txt", rows)
-    with pytest.raises(data.DataError, match=rf"{path}:91: frame 5 is off .* 10 row\(s\)"):
+    with pytest.raises(DataError, match=rf"{path}:91: frame 5 is off .* 10 row\(s\)"):
         data.read_tracks(path)
 
 
@@ -80,7 +82,7 @@ def test_a_pedestrian_sampled_on_another_phase_is_refused(tmp_path):
 def test_ndjson_values_of_the_wrong_type_are_refused(tmp_path, record, problem):
     good = '{"track": {"f": 0, "p": 2, "x": 0.0, "y": 0.0}}'
     path = _write(tmp_path / "crowd.ndjson", [good, record])
-    with pytest.raises(data.DataError) as error:
+    with pytest.raises(DataError) as error:
         data.read_tracks(path)
     assert str(error.value).startswith(f"{path}:2: ") and problem in str(error.value)
 
@@ -91,7 +93,7 @@ def test_ndjson_values_of_the_wrong_type_are_refused(tmp_path, record, problem):
 ])
 def test_bytes_that_are_not_utf8_are_refused_with_their_line(tmp_path, name, content, column):
     path = _write(tmp_path / name, content)
-    with pytest.raises(data.DataError,
+    with pytest.raises(DataError,
                        match=rf"{path}:2: not UTF-8 text \(byte 0xff at column {column}\)"):
         data.read_tracks(path)
 
@@ -111,7 +113,7 @@ def test_utm_like_coordinates_keep_their_millimetres(tmp_path):
 
 def test_a_frame_id_beyond_2_to_the_53_is_refused(tmp_path):
     path = _write(tmp_path / "big.txt", ["0 1 0.0 0.0", "100000000000000000000 1 1.0 0.0"])
-    with pytest.raises(data.DataError, match=rf"{path}:2: frame 1e\+20 is too large"):
+    with pytest.raises(DataError, match=rf"{path}:2: frame 1e\+20 is too large"):
         data.read_tracks(path)
 
 
@@ -129,7 +131,7 @@ def test_stats_name_files_without_windows_and_training_refuses_to_start(tmp_path
     assert stats.returncode == 0, stats.stderr
     assert f"note: {data_dir}/eth_ucy/raw/eth/short.txt gives eth/train no window" in stats.stdout
     config = DataConfig(scene="eth", data_dir=str(data_dir))
-    with pytest.raises(data.DataError, match=r"no training windows in eth \(paper protocol\): "
+    with pytest.raises(DataError, match=r"no training windows in eth \(paper protocol\): "
                                              r"none of .*short.txt gives one"):
         fit(ModelConfig(), config, TrainConfig(epochs=1), tmp_path / "run")
     assert not (tmp_path / "run").exists()                   # nothing is left behind
@@ -221,7 +223,6 @@ def test_a_batch_of_the_wrong_length_is_refused_by_predict():
 def test_a_nan_learning_rate_is_rejected_by_the_step_not_saved(tmp_path):
     """A NaN learning rate has finite gradients and non-finite new parameters: the step is
     rejected (state unchanged), and no checkpoint of a non-finite state can be written."""
-    from gst_jax.runs import RunError, WorkDir
 
     config = ModelConfig()
     window_set = data.load_split(DataConfig(scene="zara1"), "train").subset(range(4))
@@ -241,9 +242,9 @@ def test_a_nan_learning_rate_is_rejected_by_the_step_not_saved(tmp_path):
 
 
 def test_evaluate_refuses_a_read_only_work_directory_before_computing(tmp_path, monkeypatch):
-    from gst_jax import runs
+    from gst_jax.io import workdir as workdirs
 
-    workdir = runs.WorkDir(tmp_path)
-    monkeypatch.setattr(runs.os, "access", lambda path, mode: False)
-    with pytest.raises(runs.RunError, match=f"cannot write in {tmp_path}"):
+    workdir = WorkDir(tmp_path)
+    monkeypatch.setattr(workdirs.os, "access", lambda path, mode: False)
+    with pytest.raises(RunError, match=f"cannot write in {tmp_path}"):
         workdir.check_writable()

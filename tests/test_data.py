@@ -14,6 +14,7 @@ from gst_jax import data
 from gst_jax.config import CROWD_SCENES, DataConfig, ETH_UCY_SCENES
 from gst_jax.data.stats import split_stats
 from gst_jax.data.windows import cut_windows
+from gst_jax.errors import DataError
 
 FIXTURES = Path(__file__).parent / "fixtures"
 
@@ -45,7 +46,7 @@ def test_text_reader_accepts_tabs_and_spaces(tmp_path):
 ])
 def test_text_reader_rejects_bad_rows_naming_file_and_line(tmp_path, text, problem, line):
     path = _write(tmp_path, text)
-    with pytest.raises(data.DataError) as error:
+    with pytest.raises(DataError) as error:
         data.read_tracks(path)
     assert f"{path}:{line}:" in str(error.value)
     assert problem in str(error.value)
@@ -53,7 +54,7 @@ def test_text_reader_rejects_bad_rows_naming_file_and_line(tmp_path, text, probl
 
 def test_empty_file_is_an_error(tmp_path):
     path = _write(tmp_path, "\n  \n")
-    with pytest.raises(data.DataError, match="empty file"):
+    with pytest.raises(DataError, match="empty file"):
         data.read_tracks(path)
 
 
@@ -74,7 +75,7 @@ def test_ndjson_reader_reads_frame_step_from_data(tmp_path):
 def test_ndjson_reader_rejects_bad_records(tmp_path, line, problem):
     good = '{"track": {"f": 0, "p": 2, "x": 0.0, "y": 0.0}}'
     path = _write(tmp_path, good + "\n" + line + "\n", "crowd.ndjson")
-    with pytest.raises(data.DataError) as error:
+    with pytest.raises(DataError) as error:
         data.read_tracks(path)
     assert f"{path}:2:" in str(error.value) and problem in str(error.value)
 
@@ -217,7 +218,7 @@ def test_crowd_is_every_scene_split_as_in_its_own_scene(protocol, split):
     (DataConfig(), "dev", "unknown split 'dev'"),
 ])
 def test_bad_requests_are_explained(config, split, problem):
-    with pytest.raises(data.DataError, match=problem):
+    with pytest.raises(DataError, match=problem):
         data.load_split(config, split)
 
 

@@ -1,7 +1,8 @@
-"""The package's shape (docs/ARCHITECTURE.md): one direction of flow, thin commands.
+"""The package's shape (docs/architecture.md): layers that import only downwards, thin
+commands, light imports.
 
 Imports are read from the source (every import statement, also those inside functions), so
-a cycle hidden behind a function-level import fails as well.
+an import hidden in a function counts as well.
 """
 
 from __future__ import annotations
@@ -14,6 +15,32 @@ from pathlib import Path
 PACKAGE = Path(__file__).parents[1] / "gst_jax"
 # Command modules: argument parsing and printing around one library call.
 COMMANDS = {"gst_jax.train", "gst_jax.evaluate", "gst_jax.sweep", "gst_jax.plot", "gst_jax.cli"}
+
+
+# The layers of docs/architecture.md, bottom up: a module may import its own layer and those
+# below. A name ending in "." stands for a package's modules (and the package itself).
+LAYERS = (
+    ("foundation", {"gst_jax.config", "gst_jax.errors", "gst_jax.progress", "gst_jax.compiles"}),
+    ("data", {"gst_jax.data."}),
+    ("numerics", {"gst_jax.graph", "gst_jax.noise", "gst_jax.gumbel", "gst_jax.augment",
+                  "gst_jax.parallel"}),
+    ("model", {"gst_jax.model."}),
+    ("rollout", {"gst_jax.rollout"}),
+    ("outputs", {"gst_jax.losses", "gst_jax.metrics", "gst_jax.predict", "gst_jax.interop",
+                 "gst_jax.prediction_files", "gst_jax.figures", "gst_jax.simulate",
+                 "gst_jax.simulate.scenarios", "gst_jax.simulate.measures",
+                 "gst_jax.simulate.loop", "gst_jax.simulate.figures"}),
+    ("evaluation", {"gst_jax.evaluation", "gst_jax.testing."}),
+    ("state", {"gst_jax.io.", "gst_jax.pretrained", "gst_jax.training",
+               "gst_jax.training.state", "gst_jax.training.schedules",
+               "gst_jax.training.members", "gst_jax.training.step"}),
+    ("models by name", {"gst_jax.runs"}),
+    ("drivers", {"gst_jax.training.loop", "gst_jax.training.sweep", "gst_jax.run_figures",
+                 "gst_jax.simulate.study", "gst_jax.pretrained.export"}),
+    ("flags", {"gst_jax.cli"}),
+)
+# Imports against the layers, each with its reason in docs/architecture.md (none today).
+ALLOWED_UPWARD: set[tuple[str, str]] = set()
 
 
 def _module_name(path: Path) -> str:
@@ -95,6 +122,45 @@ def test_the_cycle_check_sees_function_level_imports(tmp_path):
     assert {"gst_jax.evaluation", "gst_jax.runs"} <= _imported_names(hidden)
 
 
+def layer_of(module: str) -> int:
+    """The index of a module's layer; commands (and the package root, which imports nothing
+    at import time) sit on top."""
+    if _is_command(module) or module == "gst_jax":
+        return len(LAYERS)
+    for index, (_, members) in enumerate(LAYERS):
+        if module in members or any(m.endswith(".") and (module + ".").startswith(m)
+                                    for m in members):
+            return index
+    raise AssertionError(f"{module} is in no layer of tests/test_layout.py (docs/architecture.md)")
+
+
+def upward_imports(graph: dict[str, set[str]]) -> set[tuple[str, str]]:
+    return {(module, target) for module, targets in graph.items() for target in targets
+            if layer_of(target) > layer_of(module)}
+
+
+def test_every_import_runs_down_the_layers():
+    upward = upward_imports(import_graph()) - ALLOWED_UPWARD
+    assert not upward, "imports against the layers: " + ", ".join(
+        f"{a} ({LAYERS[layer_of(a)][0]}) -> {b} ({LAYERS[layer_of(b)][0]})"
+        for a, b in sorted(upward))
+
+
+def test_the_allowed_exceptions_are_few_and_explained():
+    assert len(ALLOWED_UPWARD) <= 2
+    architecture = (PACKAGE.parent / "docs" / "architecture.md").read_text()
+    for module, target in ALLOWED_UPWARD:
+        assert f"{module} -> {target}" in architecture
+    for name, _ in LAYERS:
+        assert f"**{name}**" in architecture, f"docs/architecture.md does not name layer {name}"
+
+
+def test_the_layer_check_sees_an_import_that_runs_up():
+    assert upward_imports({"gst_jax.data.batch": {"gst_jax.model.gst"}}) == {
+        ("gst_jax.data.batch", "gst_jax.model.gst")}
+    assert not upward_imports({"gst_jax.model.gst": {"gst_jax.data.batch"}})
+
+
 def test_library_modules_import_no_command_and_parse_no_arguments():
     for module, path in MODULES.items():
         if _is_command(module):
@@ -112,10 +178,20 @@ def test_commands_are_thin():
             assert lines <= 70, f"{module} has {lines} lines; move its logic into the library"
 
 
-def test_importing_the_package_is_light():
-    """`import gst_jax` loads no checkpointing library until a checkpoint is read."""
-    code = ("import sys, gst_jax; heavy = [m for m in ('orbax.checkpoint', 'optax', "
-            "'matplotlib') if m in sys.modules]; print(heavy)")
+def _loaded_after(statement: str) -> list[str]:
+    """The heavy libraries a fresh interpreter holds after `statement`."""
+    code = (f"import sys; {statement}; print([m for m in ('jax', 'flax', 'orbax.checkpoint', "
+            "'optax', 'scipy', 'matplotlib') if m in sys.modules])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True).stdout
-    assert out.strip() == "[]"
+    return eval(out)
+
+
+def test_importing_the_package_and_its_data_layer_loads_no_jax():
+    """`import gst_jax` loads nothing heavy until a name is used; the data layer is numpy."""
+    assert _loaded_after("import gst_jax") == []
+    assert _loaded_after("import gst_jax.data, gst_jax.config, gst_jax.errors") == []
+
+
+def test_the_data_stats_command_loads_no_jax():
+    assert _loaded_after("import gst_jax.data.__main__") == []

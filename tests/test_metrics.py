@@ -6,8 +6,20 @@ import numpy as np
 import pytest
 
 from gst_jax import metrics
+from gst_jax.data import pad_windows
+from gst_jax.data.windows import Window
+from gst_jax.evaluation import score
+from gst_jax.prediction_files import PredictedBatch
 
 P = 4
+
+
+def scored(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> metrics.Scored:
+    """pred (K, B, P, N, 2) against truth (B, P, N, 2), scoring the pedestrians of mask (B, N)."""
+    steps = np.ones(truth.shape[:-1])
+    return metrics.Scored(pred=pred, truth=truth, scored_mask=mask, predicted_mask=mask,
+                          truth_step_mask=steps, observed=truth[:, :2],
+                          observed_node_mask=steps[:, :2])
 
 
 def straight_away(speeds):
@@ -20,13 +32,17 @@ def test_aoe_foe_min_ade_fde_by_hand():
     truth = np.zeros((1, P, 1, 2))
     pred = straight_away([1.0, 0.5])          # errors t+1 and (t+1)/2 at step t
     mask = np.ones((1, 1))
-    sums = metrics.aoe_foe_sums(pred, truth, mask)
-    np.testing.assert_allclose(sums["aoe_sum"], [2.5, 1.25])      # mean(1, 2, 3, 4) = 2.5
-    np.testing.assert_allclose(sums["foe_sum"], [4.0, 2.0])
-    assert sums["count"] == 1
-    best = metrics.min_ade_fde_sums(pred, truth, mask)
-    assert best["min_ade_sum"] == pytest.approx(1.25) and best["min_fde_sum"] == pytest.approx(2.0)
-    assert metrics.aoe_foe_sums(pred, truth, np.zeros((1, 1)))["count"] == 0
+    sums = metrics.aoe_foe(scored(pred, truth, mask))
+    np.testing.assert_allclose(sums["aoe"].total, [2.5, 1.25])    # mean(1, 2, 3, 4) = 2.5
+    np.testing.assert_allclose(sums["foe"].total, [4.0, 2.0])
+    assert sums["aoe"].count == 1
+    best = metrics.min_ade_fde(scored(pred, truth, mask))
+    assert best["min_ade"].total == pytest.approx(1.25)
+    assert best["min_fde"].total == pytest.approx(2.0)
+    assert metrics.aoe_foe(scored(pred, truth, np.zeros((1, 1))))["aoe"].count == 0
+    # Per-run values report their mean over runs and, as `_std`, their spread.
+    summary = metrics.summarize(sums)
+    assert summary["aoe"] == pytest.approx(1.875) and summary["aoe_std"] == pytest.approx(0.625)
 
 
 def test_release_spread_is_the_per_window_std_of_summed_errors_over_pedestrians():
@@ -37,10 +53,11 @@ def test_release_spread_is_the_per_window_std_of_summed_errors_over_pedestrians(
     pred = np.concatenate([np.concatenate([first, first * np.nan], axis=3),
                            np.concatenate([second, second], axis=3)], axis=1)
     mask = np.array([[1.0, 0.0], [1.0, 1.0]])
-    sums = metrics.release_spread_sums(pred, truth, mask)
+    sums = metrics.release_spread(scored(pred, truth, mask))
     # torch's std (ddof 1): std(2.5, 1.25, 0) = 1.25, std(5, 0, 0) = 5 / sqrt(3).
-    assert sums["aoe_window_std_sum"] == pytest.approx(1.25 + 5 / np.sqrt(3))
-    assert sums["foe_window_std_sum"] == pytest.approx(2.0 + 8 / np.sqrt(3))
+    assert sums["release_aoe_std"].total == pytest.approx(1.25 + 5 / np.sqrt(3))
+    assert sums["release_foe_std"].total == pytest.approx(2.0 + 8 / np.sqrt(3))
+    assert sums["release_aoe_std"].count == 3
 
 
 def test_kde_nll_matches_the_gaussian_kde_formula():
@@ -61,8 +78,10 @@ def test_kde_nll_matches_the_gaussian_kde_formula():
 
     pred = np.broadcast_to(samples[:, None, None, None, :], (20, 1, P, 1, 2))
     truth = np.broadcast_to(point, (1, P, 1, 2))
-    sums = metrics.kde_nll_sums(pred, truth, np.ones((1, 1)))
-    assert sums["count"] == 1 and sums["nll_sum"] == pytest.approx(-expected, rel=1e-6)
+    sums = metrics.kde_nll(scored(pred, truth, np.ones((1, 1))))
+    assert sums["kde_nll"].count == 1
+    assert sums["kde_nll"].total == pytest.approx(-expected, rel=1e-6)
+    assert metrics.kde_nll(scored(pred[:2], truth, np.ones((1, 1)))) == {}   # K = 2: no KDE
 
 
 def test_collisions_count_pairs_closer_than_10_cm():
@@ -93,3 +112,26 @@ def test_constant_velocity_repeats_the_last_displacement():
     node_mask[0, 2, 0] = 0                     # no last displacement: stays put
     np.testing.assert_allclose(metrics.constant_velocity(obs, node_mask, pred_len=2)[0, :, 0],
                                [[2, 1], [2, 1]])
+
+
+def _window(num_pedestrians: int = 2) -> Window:
+    """A window of walkers moving 0.4 m per step along x, all detected at every step."""
+    steps = np.arange(8 + P, dtype=np.float32)[:, None, None] * [0.4, 0.0]
+    positions = steps + np.arange(num_pedestrians)[None, :, None] * [0.0, 1.0]
+    return Window(positions.astype(np.float32), np.ones((8 + P, num_pedestrians), np.float32),
+                  np.arange(num_pedestrians), "walkers", 0, 1, obs_len=8)
+
+
+def test_a_new_metric_is_one_function_and_one_line(monkeypatch):
+    """A metric registered in METRICS is scored and reported by the evaluation unchanged."""
+    def max_error(s: metrics.Scored) -> dict[str, metrics.Ratio]:
+        return {"max_error": metrics.Ratio(s.over_scored(s.errors.max(axis=2)), s.count)}
+    monkeypatch.setitem(metrics.METRICS, "max_error", max_error)
+
+    batch = pad_windows([_window()], 2)
+    truth = batch.positions[:, 8:]
+    pred = np.stack([truth + [0.0, 0.3], truth + [0.0, 0.1]])      # 0.3 m off, then 0.1 m
+    result = score([PredictedBatch(batch, pred, np.ones((1, 2)))], obs_len=8)
+    assert result["max_error"] == pytest.approx(0.2) and result["max_error_std"] == pytest.approx(0.1)
+    assert result["aoe"] == pytest.approx(0.2) and result["pedestrians"] == 2
+    assert result["cv_aoe"] == pytest.approx(0.0, abs=1e-6)       # walkers at constant velocity

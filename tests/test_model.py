@@ -10,13 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import graph, losses, noise
+from gst_jax import graph, noise
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch, node_mask_from_positions
 from gst_jax.gumbel import gumbel_softmax, sample_gumbel
 from gst_jax.model import Controls, init_params
 from gst_jax.model.layers import Dropout
 from gst_jax.rollout import RolloutNoise, rollout, rollout_with_noise
+from gst_jax.testing.release import batch_loss
 
 CONFIG = ModelConfig(num_edge_heads=4, max_edge_heads=16)
 T, N = 20, 5
@@ -176,7 +177,7 @@ def test_absent_pedestrian_gives_no_nan_in_outputs_or_gradients(params, walk):
     np.testing.assert_array_equal(output.displacements[0, :, 1:3], 0.0)
     for output_type in ("deterministic", "gaussian"):
         config = dataclasses.replace(CONFIG, output=output_type)
-        grads = jax.grad(lambda p: losses.batch_loss(
+        grads = jax.grad(lambda p: batch_loss(
             config, run(p, batch, noise, hard=False, config=config), batch))(params)
         for leaf in jax.tree.leaves(grads):
             assert np.all(np.isfinite(leaf))
@@ -245,7 +246,7 @@ def test_tcn_readout_predicts_from_observations_only_without_nan(walk):
         future_moved[:, config.obs_len:] += 5.0
         moved = run(params, scene_batch(future_moved, mask), noise, hard=False, config=config)
         np.testing.assert_array_equal(moved.displacements, output.displacements)
-        grads = jax.grad(lambda p: losses.batch_loss(
+        grads = jax.grad(lambda p: batch_loss(
             config, run(p, batch, noise, hard=False, config=config), batch))(params)
         assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
         assert np.abs(grads["tcn"]["time_conv_0"]["kernel"]).sum() > 0

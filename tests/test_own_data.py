@@ -8,14 +8,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.errors import RunError
 from gst_jax.evaluation import evaluate_run
-from gst_jax.runs import RunError, WorkDir, load_model, load_run
+from gst_jax.io.workdir import WorkDir
+from gst_jax.runs import load_model, load_run
 from gst_jax.training.loop import fit
 from gst_jax.training.state import hparams_for_epoch, step_key
 from gst_jax.training.step import make_train_step

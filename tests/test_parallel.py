@@ -3,7 +3,6 @@ CPU devices (`--xla_force_host_platform_device_count=4`, so in a subprocess) aga
 
 from __future__ import annotations
 
-import json
 import os
 import socket
 import subprocess
@@ -15,7 +14,8 @@ import numpy as np
 import pytest
 
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-from gst_jax.runs import WorkDir, load_run
+from gst_jax.io.workdir import WorkDir
+from gst_jax.runs import load_run
 from gst_jax.training.loop import fit
 
 # Runs in a process that sees 4 CPU devices, or in one that sees 1 (argv: 4 or 1, and where
@@ -26,7 +26,8 @@ SCRIPT = textwrap.dedent("""
     from gst_jax import data, parallel
     from gst_jax.config import DataConfig, ModelConfig, TrainConfig
     from gst_jax.evaluation import evaluate_params
-    from gst_jax.runs import WorkDir, load_run
+    from gst_jax.io.workdir import WorkDir
+    from gst_jax.runs import load_run
     from gst_jax.training import members as sweep_members, sweep
     from gst_jax.training.loop import fit
     from gst_jax.training.state import create_train_state, hparams_for_epoch, step_key

@@ -9,7 +9,7 @@ import pytest
 
 from gst_jax import plot
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-from gst_jax.runs import WorkDir, run_config
+from gst_jax.io.workdir import WorkDir, run_config
 from gst_jax.training.state import create_train_state
 
 

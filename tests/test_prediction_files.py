@@ -13,7 +13,7 @@ import pytest
 
 from gst_jax import metrics
 from gst_jax.config import DataConfig
-from gst_jax.data import DataError
+from gst_jax.errors import DataError
 from gst_jax.evaluation import evaluate_prediction_file, evaluate_run
 from gst_jax.runs import load_model
 
@@ -100,14 +100,21 @@ def _two_walkers(gap: float, cross_between_steps: bool = False) -> np.ndarray:
     return np.stack([path0, path1], axis=1)[None, None]
 
 
+def _scored(pred, truth, primary, predicted, truth_steps) -> metrics.Scored:
+    return metrics.Scored(pred=pred, truth=truth, scored_mask=primary, predicted_mask=predicted,
+                          truth_step_mask=truth_steps, observed=truth[:, :2],
+                          observed_node_mask=truth_steps[:, :2])
+
+
 @pytest.mark.parametrize("gap, collides", [(0.19, True), (0.2, True), (0.25, False)])
 def test_col_i_counts_discs_of_radius_0_1_that_touch(gap, collides):
     pred = _two_walkers(gap)
     everyone = np.ones((1, 2))
-    sums = metrics.trajnet_collision_sums(pred, pred[0], everyone, everyone, np.ones((1, 3, 2)))
-    assert sums["count"] == 2
-    assert list(sums["col1_sum"]) == [2.0 if collides else 0.0]
-    assert list(sums["col2_sum"]) == [2.0 if collides else 0.0]
+    sums = metrics.trajnet_collisions(_scored(pred, pred[0], everyone, everyone,
+                                              np.ones((1, 3, 2))))
+    assert sums["col_i"].count == 2
+    assert list(sums["col_i"].total) == [2.0 if collides else 0.0]
+    assert list(sums["col_ii"].total) == [2.0 if collides else 0.0]
 
 
 def test_col_ii_checks_midpoints_and_skips_segments_without_truth():
@@ -115,8 +122,8 @@ def test_col_ii_checks_midpoints_and_skips_segments_without_truth():
     truth = _two_walkers(0.0, cross_between_steps=True)[0]
     primary = np.array([[1.0, 0.0]])                        # walker 0 is the primary
     seen = np.ones((1, 3, 2))
-    sums = metrics.trajnet_collision_sums(pred, truth, primary, np.ones((1, 2)), seen)
-    assert list(sums["col1_sum"]) == [0.0] and list(sums["col2_sum"]) == [1.0]
+    sums = metrics.trajnet_collisions(_scored(pred, truth, primary, np.ones((1, 2)), seen))
+    assert list(sums["col_i"].total) == [0.0] and list(sums["col_ii"].total) == [1.0]
     seen[0, 2, 1] = 0                                       # walker 1's truth ends at step 1
-    sums = metrics.trajnet_collision_sums(pred, truth, primary, np.ones((1, 2)), seen)
-    assert list(sums["col2_sum"]) == [0.0]
+    sums = metrics.trajnet_collisions(_scored(pred, truth, primary, np.ones((1, 2)), seen))
+    assert list(sums["col_ii"].total) == [0.0]

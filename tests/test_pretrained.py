@@ -8,9 +8,10 @@ import pytest
 
 from gst_jax import load_pretrained, pretrained
 from gst_jax.config import CROWD_SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.errors import RunError
+from gst_jax.io.workdir import WorkDir
 from gst_jax.pretrained import export
 from gst_jax.pretrained.export import check_aoe
-from gst_jax.runs import RunError, WorkDir
 from gst_jax.training.loop import fit
 
 
@@ -22,7 +23,7 @@ def test_at_least_one_model_is_shipped():
 def test_pretrained_model_reproduces_its_recorded_aoe(name):
     meta = pretrained.load_meta(name)
     config, params = load_pretrained(name)
-    aoe = check_aoe(config, params, DataConfig(**meta["data"]))
+    aoe = check_aoe(config, params, DataConfig.from_dict(meta["data"]))
     assert abs(aoe - meta["check"]["aoe"]) < 1e-3
 
 

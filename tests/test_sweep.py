@@ -11,13 +11,15 @@ import numpy as np
 import pytest
 
 from gst_jax import data
-from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import DataConfig, Member, ModelConfig, TrainConfig
+from gst_jax.errors import RunError
 from gst_jax.graph import drop_partially_detected
+from gst_jax.io.workdir import WorkDir
 from gst_jax.model import Controls
-from gst_jax.rollout import rollout
-from gst_jax.runs import RunError, WorkDir, load_member
-from gst_jax.training import members as sweep_members, sweep
 from gst_jax.progress import Progress
+from gst_jax.rollout import rollout
+from gst_jax.runs import load_member
+from gst_jax.training import members as sweep_members, sweep
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
 
@@ -40,7 +42,7 @@ class _CrashAfterEpoch(Progress):
 
 
 def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_path):
-    members = [sweep_members.Member(0, False, 3), sweep_members.Member(2, True, 4)]  # n, F, seed
+    members = [Member(0, False, 3), Member(2, True, 4)]  # n, F, seed
     config = sweep_members.sweep_model_config(ModelConfig(), members)
     data_config = DataConfig(scene="zara1")
     train_config = TrainConfig(epochs=4, batch_size=2, seed=3, checkpoint_every=2,
@@ -127,9 +129,9 @@ def _fake_evaluations(aoe_by_member: dict) -> tuple[list, list]:
 
 def test_summary_quantities_and_cross_dataset_figures(tmp_path):
     """Best n, sparse-vs-full and partial-vs-full improvements from hand-made AOEs."""
-    from gst_jax import figures
+    import _figures as figures        # experiments/_figures.py
 
-    M = sweep_members.Member
+    M = Member
     all_results = []
     for scene, best in (("zara1", 0.4), ("hotel", 0.2)):
         members, evaluations = _fake_evaluations({

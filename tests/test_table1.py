@@ -1,21 +1,24 @@
-"""experiments/table1.py: rows from work directories and shipped models, spread over seeds."""
+"""experiments/table1.py and crowd.py: rows from work directories and shipped models, spread
+over seeds; parked runs."""
 
 from __future__ import annotations
 
 import json
-import runpy
 import shutil
-import subprocess
 from pathlib import Path
 
+import _common
+import crowd
 import pytest
+import table1
 
-TABLE1 = runpy.run_path(str(Path(__file__).parents[1] / "experiments" / "table1.py"))
+from gst_jax.io.checkpoints import Checkpointer
+from gst_jax.io.workdir import WorkDir
 
 
 def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[float],
               output: str = "deterministic") -> None:
-    workdir = TABLE1["workdir_of"](runs, scene, "paper", output, 200, seed)
+    workdir = table1.workdir_of(runs, scene, "paper", output, 200, seed)
     (workdir / "eval").mkdir(parents=True)
     (workdir / "metrics.jsonl").write_text("".join(
         json.dumps({"epoch": e + 1, "epoch_time_s": t}) + "\n" for e, t in enumerate(epoch_times)))
@@ -31,7 +34,7 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
     monkeypatch.setattr(pretrained, "available", lambda: ["eth_d"])    # the only one shipped
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
     _fake_run(tmp_path / "runs", "hotel", 1001, 0.30, [60.0])
-    TABLE1["main"](["--scenes", "hotel", "eth", "univ", "--seeds", "1000,1001", "--runs",
+    table1.main(["--scenes", "hotel", "eth", "univ", "--seeds", "1000,1001", "--runs",
                     str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")])
     hotel, eth, univ = json.loads((tmp_path / "out" / "table1.json").read_text())
 
@@ -62,7 +65,7 @@ def test_finished_runs_are_kept_as_records_that_outlive_their_work_directories(t
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
     argv = ["--scenes", "hotel", "--seeds", "1000", "--runs", str(tmp_path / "runs"),
             "--workdir", str(tmp_path / "out")]
-    TABLE1["main"](argv)
+    table1.main(argv)
     first = (tmp_path / "out" / "table1.json").read_text()
     record = json.loads((tmp_path / "out" / "runs" / "hotel-paper-d-n1-e200-seed1000.json")
                         .read_text())
@@ -70,14 +73,14 @@ def test_finished_runs_are_kept_as_records_that_outlive_their_work_directories(t
 
     for path in sorted((tmp_path / "runs").rglob("*"), reverse=True):   # the runs are lost
         path.unlink() if path.is_file() else path.rmdir()
-    TABLE1["main"](argv)
+    table1.main(argv)
     assert (tmp_path / "out" / "table1.json").read_text() == first
 
 
 def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
     for k, scene in enumerate(("eth", "hotel", "univ", "zara1", "zara2")):
         _fake_run(tmp_path / "runs", scene, 1000, 0.1 * (k + 1), [60.0], output="gaussian")
-    TABLE1["main"](["--output", "gaussian", "--runs", str(tmp_path / "runs"), "--workdir",
+    table1.main(["--output", "gaussian", "--runs", str(tmp_path / "runs"), "--workdir",
                     str(tmp_path / "out")])
     table = (tmp_path / "out" / "table1_p.md").read_text()
     assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 0.050 / 0.100 | 1.10 | 2.22 | -0.10 | 0.97 / 2.12 |" in table
@@ -86,7 +89,7 @@ def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
 
 def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_average_of_ours(
         tmp_path):
-    TABLE1["main"](["--protocol", "loo", "--runs", str(tmp_path / "runs"), "--workdir",
+    table1.main(["--protocol", "loo", "--runs", str(tmp_path / "runs"), "--workdir",
                     str(tmp_path / "out")])
     rows = json.loads((tmp_path / "out" / "table1_loo.json").read_text())
     assert [r["scene"] for r in rows] == ["eth", "hotel", "univ", "zara1", "zara2"]
@@ -104,7 +107,6 @@ class _SittingEnds(BaseException):
 def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recorded(
         tmp_path, monkeypatch):
     from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-    from gst_jax.runs import Checkpointer, WorkDir
     from gst_jax.training.loop import fit
 
     config, zara1 = TrainConfig(epochs=2, batch_size=8, max_train_windows=8,
@@ -122,13 +124,13 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
             fit(ModelConfig(), zara1, config, tmp_path / "first")
     first_epoch = WorkDir(tmp_path / "first").read_metrics()
     # (a seed no shipped model has, so that the row cannot fall back to one)
-    name = TABLE1["workdir_of"](Path("runs"), "zara1", "paper", "deterministic", 200, 1003).name
+    name = table1.workdir_of(Path("runs"), "zara1", "paper", "deterministic", 200, 1003).name
     parked = tmp_path / "results" / "resume" / name
-    assert WorkDir(tmp_path / "first").park(parked) == 1
+    assert _common.park(tmp_path / "first", parked) == 1
     assert sorted(p.name for p in (parked / "checkpoints").iterdir()) == ["1", "checksums.json"]
 
     # Until it finishes, the table shows how far it got, and still no figure.
-    TABLE1["main"](["--scenes", "zara1", "--seeds", "1003", "--runs", str(tmp_path / "runs"),
+    table1.main(["--scenes", "zara1", "--seeds", "1003", "--runs", str(tmp_path / "runs"),
                     "--workdir", str(tmp_path / "results")])
     [row] = json.loads((tmp_path / "results" / "table1.json").read_text())
     assert row["in_progress"] == {"1003": 1} and "aoe" not in row
@@ -145,26 +147,23 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0])
     parked = tmp_path / "results" / "resume" / "hotel-paper-d-n1-e200-seed1000"
     parked.mkdir(parents=True)
-    TABLE1["main"](["--scenes", "hotel", "--runs", str(tmp_path / "runs"), "--workdir",
+    table1.main(["--scenes", "hotel", "--runs", str(tmp_path / "runs"), "--workdir",
                     str(tmp_path / "results")])
     assert not parked.exists()
-
-
-CROWD = runpy.run_path(str(Path(__file__).parents[1] / "experiments" / "crowd.py"))
 
 
 def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_its_run(
         tmp_path, monkeypatch):
     _fake_run(tmp_path / "runs", "crowd", 1000, 0.40, [600.0])        # its union test split
-    workdir = TABLE1["workdir_of"](tmp_path / "runs", "crowd", "paper", "deterministic", 200, 1000)
-    for k, scene in enumerate(CROWD["SCENES"]):
+    workdir = table1.workdir_of(tmp_path / "runs", "crowd", "paper", "deterministic", 200, 1000)
+    for k, scene in enumerate(crowd.SCENES):
         if scene != "wildtrack":                                  # not evaluated there yet
             (workdir / "eval" / f"{scene}-paper-test-e200.json").write_text(json.dumps(
                 {"aoe": 0.1 * (k + 1), "foe": 0.2 * (k + 1), "pedestrians": k + 1,
                  "cv_aoe": 0.5, "cv_foe": 1.0}))
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.25, [60.0])         # hotel's own model
     argv = ["--runs", str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")]
-    CROWD["main"](argv)
+    crowd.main(argv)
     table = (tmp_path / "out" / "crowd.md").read_text()
     assert "| hotel | 2 | 0.200 / 0.400 | 0.250 / 0.500 | 0.500 / 1.000 |" in table
     assert "| lcas | 6 | 0.600 / 1.200 | - | 0.500 / 1.000 |" in table
@@ -172,19 +171,19 @@ def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_i
     assert "| all seven | 7 | 0.400 / 0.800 | - | 0.500 / 1.000 |" in table
     assert "Train time 10 min" in table
 
-    commands = []                        # --train evaluates it where it was not evaluated yet
+    evaluated = []                       # --train evaluates it where it was not evaluated yet
 
-    def evaluate(command, check):
-        commands.append(command[1:])
-        (workdir / "eval" / f"{command[-1]}-paper-test-e200.json").write_text(json.dumps(
+    def evaluate(run, data_config):
+        evaluated.append((run, data_config.scene))
+        (workdir / "eval" / f"{data_config.scene}-paper-test-e200.json").write_text(json.dumps(
             {"aoe": 0.9, "foe": 1.8, "pedestrians": 9, "cv_aoe": 0.5, "cv_foe": 1.0}))
-    monkeypatch.setattr(subprocess, "run", evaluate)
-    CROWD["main"]([*argv, "--train"])
-    assert commands == [["-m", "gst_jax.evaluate", str(workdir), "--scene", "wildtrack"]]
+    monkeypatch.setattr(crowd, "evaluate", evaluate)
+    crowd.main([*argv, "--train"])
+    assert evaluated == [(workdir, "wildtrack")]
     table = (tmp_path / "out" / "crowd.md").read_text()
     assert "| wildtrack | 9 | 0.900 / 1.800 | - | 0.500 / 1.000 |" in table
 
     for path in sorted((tmp_path / "runs").rglob("*"), reverse=True):   # the runs are lost
         path.unlink() if path.is_file() else path.rmdir()
-    CROWD["main"](argv)
+    crowd.main(argv)
     assert (tmp_path / "out" / "crowd.md").read_text() == table

@@ -16,16 +16,22 @@ import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
 from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.errors import NonFiniteError, RunError
+from gst_jax.io.checkpoints import Checkpointer
+from gst_jax.io.interrupts import interrupts_deferred
+from gst_jax.io.workdir import WorkDir, code_version, run_config, run_name, same_run
+from gst_jax.model import heads
+from gst_jax.predict import make_predict
 from gst_jax.progress import Progress
-from gst_jax.runs import (Checkpointer, RunError, WorkDir, code_version, load_run, run_config,
-                          run_name, same_run)
-from gst_jax.training.loop import NonFiniteError, fit
+from gst_jax.runs import load_run
+from gst_jax.training.loop import fit
 from gst_jax.training.schedules import make_schedule
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
@@ -131,6 +137,38 @@ def test_loss_goes_down_on_a_fixed_batch(fixed_step):
         losses.append(float(metrics["loss"]))
     assert all(np.isfinite(losses))
     assert np.mean(losses[-5:]) < 0.5 * np.mean(losses[:3]), losses
+
+
+def test_a_new_output_head_is_one_entry_in_the_registry(fixed_step, monkeypatch):
+    """A head registered in HEADS trains, predicts and names its runs with nothing else
+    changed: here GST with the mean absolute error of positions as its loss."""
+    def position_l1(losses: heads.Losses) -> jax.Array:
+        mask = losses.step_mask[..., None]
+        error = jnp.cumsum((losses.displacements - losses.true_displacements) * mask, axis=1)
+        return heads.safe_ratio(jnp.sum(jnp.abs(error) * mask, axis=(1, 2, 3)),
+                                jnp.sum(mask, axis=(1, 2, 3)))
+    monkeypatch.setitem(heads.HEADS, "l1", heads.Head(
+        letter="l1", sampled=False, draw=lambda mu, sigma, corr, normal: mu,
+        scene_loss=position_l1))
+
+    config = dataclasses.replace(MODEL, output="l1")
+    state = create_train_state(config, jax.random.key(0))
+    step = make_train_step(config, rotate=False)
+    hparams = hparams_for_epoch(config, TrainConfig(), epoch=1)
+    losses = []
+    for _ in range(15):
+        state, metrics = step(state, jax.random.key(1), fixed_step, hparams)
+        losses.append(float(metrics["loss"]))
+    assert np.mean(losses[-3:]) < 0.7 * losses[0], losses
+    assert run_name(DataConfig(), config, TrainConfig()) == "eth-paper-l1-n1-e200-seed1000"
+    batch = fixed_step.micro_batches[0]
+    prediction = make_predict(config, num_samples=2)(state.params, jax.random.key(2), batch)
+    predicted = np.asarray(prediction.predicted_mask) > 0
+    positions = np.moveaxis(np.asarray(prediction.positions), 2, 3)        # (K, B, N, P, 2)
+    assert predicted.any() and np.isfinite(positions[:, predicted]).all()
+    with pytest.raises(ValueError, match="output 'l2': expected one of deterministic, "
+                                         "gaussian, l1"):
+        create_train_state(dataclasses.replace(MODEL, output="l2"), jax.random.key(0))
 
 
 def test_a_packed_step_equals_the_same_windows_in_one_padded_batch():
@@ -250,7 +288,7 @@ def test_a_copied_source_tree_names_the_code_it_was_given(tmp_path):
     shutil.copytree(Path(data.__file__).parents[1], tmp_path / "gst_jax",
                     ignore=shutil.ignore_patterns("pretrained", "__pycache__"))
     env = {**os.environ, "PYTHONPATH": str(tmp_path), "GST_JAX_CODE_VERSION": "8f72101f7e gpu"}
-    named = subprocess.run([sys.executable, "-c", "from gst_jax.runs import code_version; "
+    named = subprocess.run([sys.executable, "-c", "from gst_jax.io.workdir import code_version; "
                             "import gst_jax; print(code_version(), gst_jax.__file__)"],
                            env=env, cwd=tmp_path, capture_output=True, text=True, check=True)
     assert named.stdout.split() == ["8f72101f7e", "gpu", str(tmp_path / "gst_jax" / "__init__.py")]
@@ -354,10 +392,9 @@ def test_a_ctrl_c_during_a_checkpoint_save_takes_effect_once_it_is_complete(tmp_
 
 
 def test_an_ignored_ctrl_c_stays_ignored_during_a_checkpoint_save():
-    from gst_jax.runs import _interrupts_deferred
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)      # as in a script's background job
     try:
-        with _interrupts_deferred():
+        with interrupts_deferred():
             os.kill(os.getpid(), signal.SIGINT)
     finally:
         signal.signal(signal.SIGINT, previous)

@@ -6,11 +6,11 @@ from gst_jax.data.batching import (BUCKETS, SHARED_MICRO_BATCH_MAX, TRAINING_BUC
                                    pack_step, pad_windows, training_batches)
 from gst_jax.data.protocols import (data_files, data_name, default_data_dir, has_validation,
                                     load_split)
-from gst_jax.data.readers import DataError, Tracks, read_tracks
+from gst_jax.data.readers import Tracks, read_tracks
 from gst_jax.data.windows import Window, WindowSet
 
 __all__ = [
-    "BUCKETS", "DataError", "PackedStep", "SHARED_MICRO_BATCH_MAX", "SceneBatch",
+    "BUCKETS", "PackedStep", "SHARED_MICRO_BATCH_MAX", "SceneBatch",
     "TRAINING_BUCKETS", "Tracks", "Window", "WindowSet", "bucket_size", "data_files",
     "data_name", "default_data_dir", "evaluation_batches", "has_validation", "load_split",
     "make_batch", "node_mask_from_positions", "pack_step", "pad_windows", "read_tracks",

@@ -1,7 +1,10 @@
-"""`SceneBatch`: the padded, masked arrays that every jitted function consumes.
+"""`SceneBatch`: the padded, masked arrays that every jitted function consumes, and the masks
+that say who is observed, predicted and scored (docs/MODEL.md 1.6-1.8, 2.3).
 
 Built by numpy code (this package never imports jax). A NamedTuple, so it is a jax pytree
-by itself (as jraph's `GraphsTuple`) and passes straight into `jit`, `vmap` and `scan`.
+by itself (as jraph's `GraphsTuple`) and passes straight into `jit`, `vmap` and `scan`. The
+mask functions take numpy or jax arrays alike (through the arrays' own namespace), so that
+jitted code and the data layer read the same rule from one place.
 """
 
 from __future__ import annotations
@@ -39,9 +42,30 @@ class SceneBatch(NamedTuple):
         """(B, T, N)."""
         return tuple(self.position_mask.shape)
 
+    @property
+    def fully_detected_mask(self):
+        """(B, N) 1 for the pedestrians detected at every step: those scored."""
+        return fully_detected(self.node_mask)
 
-def node_mask_from_positions(position_mask: np.ndarray) -> np.ndarray:
+    def predicted_mask(self, obs_len: int):
+        """(B, N) 1 for the pedestrians predicted (see `predicted`)."""
+        return predicted(self.node_mask, obs_len)
+
+
+def node_mask_from_positions(position_mask):
     """docs/MODEL.md 1.6: m^0 = valid^0, m^t = valid^{t-1} valid^t.  (..., T, N) -> (..., T, N)."""
-    node_mask = position_mask.copy()
-    node_mask[..., 1:, :] = position_mask[..., 1:, :] * position_mask[..., :-1, :]
-    return node_mask
+    xp = position_mask.__array_namespace__()
+    return xp.concat([position_mask[..., :1, :],
+                      position_mask[..., 1:, :] * position_mask[..., :-1, :]], axis=-2)
+
+
+def fully_detected(node_mask):
+    """docs/MODEL.md 1.8: 1 for pedestrians valid at every step.  (..., T, N) -> (..., N)."""
+    return node_mask.min(axis=-2)
+
+
+def predicted(node_mask, obs_len: int):
+    """docs/MODEL.md 2.3: 1 for the pedestrians the model predicts, those valid at the last
+    observed step (detected at both of the last two: their last displacement exists).
+    (..., T, N) -> (..., N)."""
+    return node_mask[..., obs_len - 1, :]

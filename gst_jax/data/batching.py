@@ -10,8 +10,8 @@ from typing import Iterator, NamedTuple, Sequence
 
 import numpy as np
 
+from gst_jax.config import TimeGrid
 from gst_jax.data.batch import SceneBatch, node_mask_from_positions
-from gst_jax.data.readers import DataError
 from gst_jax.data.windows import Window, WindowSet
 
 # Pedestrian-slot sizes of evaluation and prediction batches; ETH/UCY windows hold 1-93
@@ -24,6 +24,9 @@ TRAINING_BUCKETS = tuple(range(8, 129, 8))
 # train one per micro-batch. Below it a call's fixed cost outweighs its padding; above it,
 # padding a 25-pedestrian window to 96 slots would cost 60 times its own work.
 SHARED_MICRO_BATCH_MAX = 24
+# Evaluation batches hold B scenes of N slots with B N^2 <= this (16 scenes of 32): few
+# programs, and memory bounded by the padded edges whatever the crowd.
+EDGE_BUDGET = 16 * 32 * 32
 
 
 class PackedStep(NamedTuple):
@@ -71,12 +74,13 @@ def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int
     scene_mask = (np.arange(batch_size) < len(windows)).astype(np.float32)
     index = np.full(batch_size, -1, np.int32)
     index[:len(windows)] = window_index if window_index is not None else np.arange(len(windows))
-    node_mask = node_mask_from_positions(position_mask)
-    keep = None
+    batch = SceneBatch(positions=positions, position_mask=position_mask,
+                       node_mask=node_mask_from_positions(position_mask), scene_mask=scene_mask,
+                       window_index=index)
     if predicted_slots is not None and windows:
-        keep = node_mask[:, windows[0].obs_len - 1, :predicted_slots]
-    return SceneBatch(positions=positions, position_mask=position_mask, node_mask=node_mask,
-                      scene_mask=scene_mask, window_index=index, predicted_slots=keep)
+        keep = batch.predicted_mask(windows[0].obs_len)[:, :predicted_slots]
+        batch = batch._replace(predicted_slots=keep)
+    return batch
 
 
 def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int = 0,
@@ -150,7 +154,7 @@ def _round_up(size: int, multiple: int) -> int:
     return -(-size // multiple) * multiple
 
 
-def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
+def evaluation_batches(window_set: WindowSet, *, edge_budget: int = EDGE_BUDGET,
                        buckets: Sequence[int] = BUCKETS,
                        batch_multiple: int = 1) -> Iterator[SceneBatch]:
     """Every window once, grouped by bucket (and the bucket of its predicted pedestrians,
@@ -178,12 +182,12 @@ def evaluation_batches(window_set: WindowSet, *, edge_budget: int = 16384,
 LARGEST_COORDINATE = 1e4
 
 
-def make_batch(observed_xy: np.ndarray, *, obs_len: int = 8,
+def make_batch(observed_xy: np.ndarray, *, grid: TimeGrid = TimeGrid(),
                pad_to_bucket: bool = True) -> SceneBatch:
     """A prediction batch from observations (B, T_obs, N, 2), NaN where nobody was detected.
 
-    This is the robot's use: feed the last T_obs = `obs_len` tracked positions (0.4 s apart,
-    metres in a local frame) of everyone in view. With `pad_to_bucket` the pedestrian axis is
+    This is the robot's use: feed the last T_obs = `grid.obs_len` tracked positions (one model
+    step apart, metres in a local frame) of everyone in view; `grid` is the model's. With `pad_to_bucket` the pedestrian axis is
     padded (with undetected slots) to the next bucket size, so a planner whose crowd changes
     size reuses a few compiled programs; pedestrian k keeps slot k.
     """
@@ -192,9 +196,10 @@ def make_batch(observed_xy: np.ndarray, *, obs_len: int = 8,
         raise ValueError(f"observed_xy must have shape (B, T_obs, N, 2), got {xy.shape}")
     if 0 in xy.shape:
         raise ValueError(f"observed_xy has an empty axis: shape {xy.shape}")
-    if xy.shape[1] != obs_len:
+    if xy.shape[1] != grid.obs_len:
         raise ValueError(f"observed_xy has {xy.shape[1]} steps; the model observes the last "
-                         f"obs_len = {obs_len} (0.4 s apart): pass observed_xy[:, -{obs_len}:]")
+                         f"obs_len = {grid.obs_len} ({grid.step_s:g} s apart): pass "
+                         f"observed_xy[:, -{grid.obs_len}:]")
     if np.nanmax(np.abs(xy), initial=0.0) > LARGEST_COORDINATE:
         raise ValueError(f"observed_xy has coordinates beyond {LARGEST_COORDINATE:.0e} m, where "
                          "float32 loses millimetres: subtract a local origin first")

@@ -17,10 +17,11 @@ import glob
 import json
 from pathlib import Path
 
-from gst_jax.config import (CROWD, CROWD_SCENES, ETH_UCY_SCENES, MODEL_HZ, PROTOCOLS, SCENES,
-                            TRAJNET_SCENES, DataConfig)
-from gst_jax.data.readers import DataError, read_tracks, to_model_rate
+from gst_jax.config import (CROWD, CROWD_SCENES, ETH_UCY_SCENES, PROTOCOLS, SCENES,
+                            TRAJNET_SCENES, DataConfig, TimeGrid)
+from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import Window, WindowSet, cut_windows, kept
+from gst_jax.errors import DataError
 
 SPLITS = ("train", "val", "test", "all")
 TRACK_SUFFIXES = (".txt", ".ndjson")
@@ -68,8 +69,9 @@ def has_validation(config: DataConfig) -> bool:
     return config.protocol in ("paper-val", "loo")
 
 
-def load_split(config: DataConfig, split: str) -> WindowSet:
-    """The windows of one split ('train', 'val' or 'test') of `config.scene`."""
+def load_split(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()) -> WindowSet:
+    """The windows of one split ('train', 'val', 'test' or 'all') of `config.scene`, cut to
+    the time grid of the model that reads them."""
     _check(config, split)
     data_dir = Path(config.data_dir) if config.data_dir else default_data_dir()
     name = f"{config.scene}/{config.protocol}/{split}"
@@ -81,7 +83,7 @@ def load_split(config: DataConfig, split: str) -> WindowSet:
     else:
         files = scene_files(data_dir, config.scene)
     for path in files:
-        windows = _cut(path, config)
+        windows = _cut(path, config, grid)
         if config.protocol == "loo" or split == "all":
             per_file.append((path, kept(windows)))
         else:
@@ -110,11 +112,11 @@ def _check(config: DataConfig, split: str) -> None:
 
 
 @functools.lru_cache(maxsize=64)
-def _cut(path: Path, config: DataConfig) -> tuple[Window | None, ...]:
+def _cut(path: Path, config: DataConfig, grid: TimeGrid) -> tuple[Window | None, ...]:
     tracks = read_tracks(path, drop_off_grid=config.drop_off_grid)
     if config.data:                       # bundled scenes are used as released (0.4 s apart)
-        tracks = to_model_rate(tracks, config.fps, MODEL_HZ, config.scale)
-    return tuple(cut_windows(tracks, config.seq_len, config.obs_len))
+        tracks = to_model_rate(tracks, config.fps, grid.hz, config.scale)
+    return tuple(cut_windows(tracks, grid.seq_len, grid.obs_len))
 
 
 def _temporal_split(windows: tuple[Window | None, ...], config: DataConfig,

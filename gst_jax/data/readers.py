@@ -15,12 +15,10 @@ from typing import Iterator
 
 import numpy as np
 
+from gst_jax.errors import DataError
+
 # Frame and pedestrian ids are parsed as floats: beyond 2^53 they are no longer exact.
 LARGEST_ID = 2 ** 53
-
-
-class DataError(ValueError):
-    """A data file or request that cannot be used; the message says where and why."""
 
 
 @dataclasses.dataclass(frozen=True)

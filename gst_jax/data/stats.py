@@ -4,22 +4,22 @@ from __future__ import annotations
 
 import dataclasses
 
-from gst_jax.config import DataConfig
+from gst_jax.config import DataConfig, TimeGrid
 from gst_jax.data.protocols import has_validation, load_split
 
 
-def split_stats(config: DataConfig, scenes: list[str]) -> dict:
+def split_stats(config: DataConfig, scenes: list[str], grid: TimeGrid = TimeGrid()) -> dict:
     """`{"protocol": ..., "scenes": {scene: {split: {windows, pedestrian_slots,
     max_pedestrians, fully_detected}}}, "files_without_windows": {"scene/split": [file]}}`
     for the given scenes; the last lists the files that gave a split no window."""
     splits = ("train", "val", "test") if has_validation(config) else ("train", "test")
-    result = {"protocol": f"{config.protocol}, obs {config.obs_len}, pred {config.pred_len}",
+    result = {"protocol": f"{config.protocol}, obs {grid.obs_len}, pred {grid.pred_len}",
               "scenes": {}, "files_without_windows": {}}
     for scene in scenes:
         scene_config = dataclasses.replace(config, scene=scene)
         result["scenes"][scene] = {}
         for split in splits:
-            window_set = load_split(scene_config, split)
+            window_set = load_split(scene_config, split, grid)
             result["scenes"][scene][split] = window_set.stats()
             if empty := window_set.files_without_windows():
                 result["files_without_windows"][f"{scene}/{split}"] = empty

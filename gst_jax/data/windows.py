@@ -7,7 +7,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from gst_jax.data.batch import node_mask_from_positions
+from gst_jax.data.batch import fully_detected, node_mask_from_positions, predicted
 from gst_jax.data.readers import Tracks
 
 
@@ -65,7 +65,7 @@ class Window:
 
     def fully_detected(self) -> np.ndarray:
         """(N_w,) bool: detected at every step (docs/MODEL.md 1.8)."""
-        return self.position_mask.min(axis=0) > 0
+        return fully_detected(node_mask_from_positions(self.position_mask)) > 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,7 +133,7 @@ def _window_from_rows(tracks: Tracks, rows: np.ndarray, start_frame: int,
     position_mask = np.zeros((seq_len, len(pedestrian_ids)), np.float32)
     positions[step[on_grid], slot[on_grid]] = xy - origin
     position_mask[step[on_grid], slot[on_grid]] = 1.0
-    if not (position_mask.min(axis=0) > 0).any():
+    if not fully_detected(node_mask_from_positions(position_mask)).any():
         return None
     order = np.argsort(_groups(position_mask, obs_len), kind="stable")     # then id order
     return Window(positions[:, order], position_mask[:, order], pedestrian_ids[order],
@@ -148,7 +148,7 @@ def _groups(position_mask: np.ndarray, obs_len: int) -> np.ndarray:
     """(T, N) position mask -> (N,) group of each pedestrian: PREDICTED (valid at the last
     observed step), OBSERVED (valid at an earlier observed step only) or UNOBSERVED."""
     node_mask = node_mask_from_positions(position_mask)
-    return np.where(node_mask[obs_len - 1] > 0, PREDICTED,
+    return np.where(predicted(node_mask, obs_len) > 0, PREDICTED,
                     np.where(node_mask[:obs_len].any(axis=0), OBSERVED, UNOBSERVED))
 
 

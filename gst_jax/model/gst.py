@@ -13,6 +13,7 @@ from gst_jax.config import ModelConfig
 from gst_jax.graph import adjacency
 from gst_jax.model.controls import Controls
 from gst_jax.model.encoder import NodeEncoderLayer
+from gst_jax.model.heads import READOUT_SIZE, head
 from gst_jax.model.layers import DenseParams, torch_dense
 from gst_jax.model.recurrent import MaskedLSTMCell
 from gst_jax.model.selector import EdgeSelector, sample_edges
@@ -27,15 +28,17 @@ class GST(nn.Module):
 
     def setup(self):
         config = self.config
+        head(config.output)                      # an unknown output fails here, by name
         self.node_embedding = torch_dense(config.node_dim, 2)
         self.edge_embedding = DenseParams(config.edge_dim, 2)  # used in factorised form
         self.edge_selector = EdgeSelector(config)
         self.node_encoder_layers = [NodeEncoderLayer(config) for _ in range(config.encoder_layers)]
         if config.temporal == "lstm":
             self.lstm = MaskedLSTMCell(config.lstm_hidden)
-            self.hidden2pos = torch_dense(5, config.lstm_hidden)
+            self.hidden2pos = torch_dense(READOUT_SIZE, config.lstm_hidden)
         else:
-            self.tcn = TemporalConvReadout(config.obs_len, config.pred_len, dropout=config.dropout)
+            self.tcn = TemporalConvReadout(config.obs_len, config.pred_len, READOUT_SIZE,
+                                           dropout=config.dropout)
 
     def select(self, node_features: jax.Array, edge_features: jax.Array, node_mask: jax.Array,
                controls: Controls, *, deterministic: bool) -> jax.Array:

@@ -79,6 +79,6 @@ class Dropout(nn.Module):
     def __call__(self, x: jax.Array, *, deterministic: bool) -> jax.Array:
         if deterministic or self.rate == 0.0:
             return x
-        keep = noise.keep_mask(self.make_rng("dropout"), x.shape, self.rate,
+        keep = noise.dropout_mask(self.make_rng("dropout"), x.shape, self.rate,
                                ghost_axis=self.ghost_axis)
         return jnp.where(keep, x / (1.0 - self.rate), jnp.zeros_like(x))

@@ -23,7 +23,7 @@ class TemporalConvReadout(nn.Module):
 
     obs_len: int
     pred_len: int
-    features_out: int = 5
+    features_out: int
     hidden: int = 32
     num_convs: int = 6
     kernel_size: int = 3

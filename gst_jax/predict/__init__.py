@@ -79,7 +79,7 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
 
         displacements, mu, sigma, corr, (adjacency, probs) = jax.vmap(one_sample)(
             jax.random.split(key, num_samples))
-        keep = batch.node_mask[:, config.obs_len - 1]
+        keep = batch.predicted_mask(config.obs_len)
         last_position = batch.positions[:, config.obs_len - 1] * keep[..., None]
         positions = jnp.where(keep[:, None, :, None] > 0,
                               last_position[:, None] + jnp.cumsum(displacements, axis=2), jnp.nan)

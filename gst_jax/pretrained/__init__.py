@@ -43,7 +43,7 @@ def load_meta(name: str) -> dict:
 
 def load_pretrained(name: str):
     """(ModelConfig, params) of a shipped model ('eth' or 'eth_d', 'eth_p', ...)."""
-    config = ModelConfig(**load_meta(name)["model"])
+    config = ModelConfig.from_dict(load_meta(name)["model"])
     like = jax.eval_shape(lambda key: init_params(config, key), jax.random.key(0))
     with ocp.StandardCheckpointer() as checkpointer:
         params = checkpointer.restore((folder(name) / "params").absolute(), like)

@@ -1,5 +1,4 @@
-"""Shipped models: `python -m gst_jax.pretrained list`, `... export RUN --name NAME`,
-`... recheck` (re-record every model's fixed-key check)."""
+"""Shipped models: `python -m gst_jax.pretrained list`, `... export RUN --name NAME`."""
 
 from __future__ import annotations
 
@@ -16,8 +15,6 @@ def main(argv: list[str] | None = None) -> None:
     export.add_argument("--name", required=True, help="e.g. eth_d")
     listing = commands.add_parser("list", help="shipped models and their measured test AOE/FOE")
     listing.add_argument("--json", action="store_true", help="print every model's meta.json")
-    commands.add_parser("recheck", help="re-record every shipped model's fixed-key check AOE "
-                        "(after a change to how random draws are made)")
     cli.run(command, parser, argv)
 
 
@@ -25,11 +22,6 @@ def command(args) -> None:
     if args.command == "export":
         from gst_jax.pretrained.export import export   # evaluation code, only when exporting
         print(f"written: {export(args.run, args.name)}")
-        return
-    if args.command == "recheck":
-        from gst_jax.pretrained.export import recheck
-        for name in pretrained.available():
-            print("{}: check AOE {:.6f} -> {:.6f}".format(name, *recheck(name)))
         return
     metas = {name: pretrained.load_meta(name) for name in pretrained.available()}
     if args.json:

@@ -12,9 +12,11 @@ import orbax.checkpoint as ocp
 
 from gst_jax import data
 from gst_jax.config import CROWD, CROWD_SCENES, DataConfig, ModelConfig
+from gst_jax.errors import RunError
 from gst_jax.evaluation import evaluate_params
-from gst_jax.pretrained import ROOT, load_meta, load_pretrained
-from gst_jax.runs import RunError, load_run, run_config
+from gst_jax.io.workdir import run_config
+from gst_jax.pretrained import ROOT
+from gst_jax.runs import load_run
 
 # The fixed-key check stored with every model: AOE on the first windows of its test split.
 CHECK = {"windows": 4, "samples": 2, "seed": 0}
@@ -22,22 +24,11 @@ CHECK = {"windows": 4, "samples": 2, "seed": 0}
 
 def check_aoe(config: ModelConfig, params, data_config: DataConfig) -> float:
     """AOE of the fixed-key check (CHECK) on the first windows of the test split."""
-    test_set = data.load_split(data_config, "test")
+    test_set = data.load_split(data_config, "test", config.grid)
     test_set = test_set.subset(range(min(CHECK["windows"], len(test_set))))
     return evaluate_params(params, jax.random.key(CHECK["seed"]), test_set, config,
                            num_samples=CHECK["samples"], with_kde=False,
                            with_baseline=False)["aoe"]
-
-
-def recheck(name: str) -> tuple[float, float]:
-    """Re-record a shipped model's fixed-key check (after a change to how draws are made,
-    e.g. the order of a window's pedestrians); returns the old and the new AOE."""
-    meta = load_meta(name)
-    config, params = load_pretrained(name)
-    old = meta["check"]["aoe"]
-    meta["check"] = {**CHECK, "aoe": check_aoe(config, params, DataConfig(**meta["data"]))}
-    (ROOT / name / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
-    return old, meta["check"]["aoe"]
 
 
 def export(run_path: str | Path, name: str) -> Path:

@@ -10,10 +10,11 @@
 """
 
 from gst_jax.simulate.loop import StepModel, constant_velocity_model, gst_model, simulate
-from gst_jax.simulate.measures import COLLISION_DISTANCE, freezing_or_u_turn, robot_measures
-from gst_jax.simulate.scenarios import (DT, OBS_LEN, SCENARIOS, Scenario, boundary_wanderers,
-                                        intersection, late_crossing, oncoming_group)
+from gst_jax.simulate.measures import (ROBOT_COLLISION_DISTANCE, freezing_or_u_turn,
+                                       robot_measures)
+from gst_jax.simulate.scenarios import (SCENARIOS, Scenario, boundary_wanderers, intersection,
+                                        late_crossing, oncoming_group)
 
-__all__ = ["COLLISION_DISTANCE", "DT", "OBS_LEN", "SCENARIOS", "Scenario", "StepModel",
+__all__ = ["ROBOT_COLLISION_DISTANCE", "SCENARIOS", "Scenario", "StepModel",
            "boundary_wanderers", "constant_velocity_model", "freezing_or_u_turn", "gst_model",
            "intersection", "late_crossing", "oncoming_group", "robot_measures", "simulate"]

@@ -4,14 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
 import numpy as np
+from matplotlib.animation import FuncAnimation, PillowWriter
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
-
-from gst_jax.simulate.scenarios import DT, Scenario  # noqa: E402
+from gst_jax.figures import plt, save
+from gst_jax.simulate.scenarios import Scenario
 
 
 def plot_run(positions: np.ndarray, scenario: Scenario, path: Path, title: str) -> Path:
@@ -30,16 +27,14 @@ def plot_run(positions: np.ndarray, scenario: Scenario, path: Path, title: str) 
     ax.set_title(title, fontsize=8)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save(fig, path, dpi=120)
 
 
 def animate_run(positions: np.ndarray, scenario: Scenario, path: Path, title: str,
-                fps: float = 2 / DT) -> Path:
+                fps: float | None = None) -> Path:
     """Animated GIF of a run (Pillow writer), one frame per step at `fps` (default 2x real
     time): trails so far, agents as dots, undetected agents hollow."""
+    fps = fps or 2 / scenario.grid.step_s
     num_steps, num_agents = positions.shape[:2]
     colors = ["tab:red"] + ["tab:blue"] * (num_agents - 1)
     lo, hi = positions.reshape(-1, 2).min(0) - 0.5, positions.reshape(-1, 2).max(0) + 0.5

@@ -9,7 +9,7 @@ from typing import Sequence
 import jax
 import numpy as np
 
-from gst_jax.config import EVAL_TAU
+from gst_jax.config import EVAL_TAU, TimeGrid
 from gst_jax.model import Controls
 from gst_jax.runs import Run
 from gst_jax.simulate.figures import animate_run, plot_run
@@ -35,12 +35,13 @@ def step_models(runs: Sequence[Run], edge_heads: Sequence[int] | None = None
 
 
 def run_scenarios(models: Sequence[tuple[str, StepModel]], scenario_names: Sequence[str],
-                  out: Path, *, seed: int = 0, animate: bool = False) -> list[dict]:
-    """Simulate every model in every scenario; one row of measures (and figure paths) each.
-    Writes out/results.json and the figures."""
+                  out: Path, *, grid: TimeGrid = TimeGrid(), seed: int = 0,
+                  animate: bool = False) -> list[dict]:
+    """Simulate every model in every scenario on the models' time grid; one row of measures
+    (and figure paths) each. Writes out/results.json and the figures."""
     rows = []
     for name in scenario_names:
-        scenario = SCENARIOS[name]()
+        scenario = SCENARIOS[name](grid)
         for label, model in models:
             positions = np.asarray(simulate(model, scenario, jax.random.key(seed)))
             row = {"scenario": scenario.name, "model": label,

@@ -28,21 +28,19 @@ import numpy as np
 
 from gst_jax import data
 from gst_jax.compiles import count_compiles
-from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import DataConfig, ModelConfig, TimeGrid, TrainConfig
+from gst_jax.errors import DataError, NonFiniteError, RunError
 from gst_jax.evaluation import evaluate_params
+from gst_jax.io.interrupts import interrupts_noticed
+from gst_jax.io.workdir import WorkDir, code_version, run_config, same_run
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress, StepClock
-from gst_jax.runs import (Run, RunError, WorkDir, code_version, interrupts_noticed, load_model,
-                          run_config, same_run)
+from gst_jax.runs import Run, load_model
 from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
                                     hparams_for_epoch, make_optimizer, parameter_key, step_key,
                                     validation_key)
 from gst_jax.training.step import TrainStep, make_train_step
-
-
-class NonFiniteError(RuntimeError):
-    """A single run's step had a non-finite loss or gradient; the last checkpoint is kept."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,14 +174,16 @@ def _format_record(record: dict) -> str:
     return " ".join(f"{name} {value(v)}" for name, v in record.items())
 
 
-def load_train_set(data_config: DataConfig, train_config: TrainConfig) -> data.WindowSet:
-    """The training windows, cut to the first `max_train_windows` when set (smoke tests)."""
-    train_set = data.load_split(data_config, "train")
+def load_train_set(data_config: DataConfig, train_config: TrainConfig,
+                   grid: TimeGrid) -> data.WindowSet:
+    """The training windows on the model's time grid, cut to the first `max_train_windows`
+    when set (smoke tests)."""
+    train_set = data.load_split(data_config, "train", grid)
     if train_config.max_train_windows:
         train_set = train_set.subset(range(min(train_config.max_train_windows, len(train_set))))
     if not len(train_set):
         files = ", ".join(path for path, _ in train_set.files) or "no files"
-        raise data.DataError(f"no training windows in {data_config.scene} ({data_config.protocol} "
+        raise DataError(f"no training windows in {data_config.scene} ({data_config.protocol} "
                              f"protocol): none of {files} gives one")
     return train_set
 
@@ -194,7 +194,7 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     """Train (or resume) one run in `workdir`; returns the summary also written there.
     devices: each step's scenes are split over them (`gst_jax.parallel`)."""
     workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
-    train_set = load_train_set(data_config, train_config)
+    train_set = load_train_set(data_config, train_config, model_config.grid)
     seed = train_config.seed
     if train_config.init:
         source = load_model(train_config.init)
@@ -249,7 +249,7 @@ def _validation(model_config: ModelConfig, data_config: DataConfig, train_config
     protocol has a validation split."""
     if not (data.has_validation(data_config) and train_config.eval_every):
         return None
-    val_set = data.load_split(data_config, "val")
+    val_set = data.load_split(data_config, "val", model_config.grid)
     # Built once: a fresh `make_predict` per validation would recompile every time.
     predict = make_predict(model_config, num_samples=1, with_graph=False)
 

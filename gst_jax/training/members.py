@@ -13,27 +13,7 @@ from typing import Any, Sequence
 import jax
 import jax.numpy as jnp
 
-from gst_jax.config import ModelConfig
-
-# --fully-detected-only of a sweep: which detection modes it trains.
-DETECTION = {"partial": (False,), "full": (True,), "both": (False, True)}
-
-
-@dataclasses.dataclass(frozen=True)
-class Member:
-    """One configuration of a sweep: n (0 = full connection), detection, seed."""
-
-    edge_heads: int
-    fully_detected_only: bool
-    seed: int
-
-    @property
-    def detection(self) -> str:
-        return "full" if self.fully_detected_only else "partial"
-
-    @property
-    def name(self) -> str:
-        return f"n{self.edge_heads}-{self.detection}-seed{self.seed}"
+from gst_jax.config import DETECTION, Member, ModelConfig
 
 
 def plan_members(edge_heads: Sequence[int], detection: str, seeds: Sequence[int]) -> list[Member]:

@@ -21,15 +21,16 @@ import jax
 import numpy as np
 
 from gst_jax import data, figures
-from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import DataConfig, EVAL_TAU, Member, ModelConfig, TrainConfig
+from gst_jax.errors import RunError
 from gst_jax.evaluation import evaluate_params
+from gst_jax.io.workdir import WorkDir, run_config
 from gst_jax.model import Controls
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress
-from gst_jax.runs import RunError, WorkDir, run_config
 from gst_jax.training.loop import Training, load_train_set, train_epochs
-from gst_jax.training.members import Member, member_config, stack, unstack
+from gst_jax.training.members import member_config, stack, unstack
 from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
                                     parameter_key)
 from gst_jax.training.step import make_train_step
@@ -62,7 +63,7 @@ def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainC
                        "give --devices a divisor of the member count")
     workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
     progress = progress or Progress()
-    train_set = load_train_set(data_config, train_config)
+    train_set = load_train_set(data_config, train_config, config.grid)
     sweep_config = run_config(config, data_config, train_config, members)
     workdir.prepare(sweep_config)
     training = Training(
@@ -76,7 +77,7 @@ def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainC
                          stop_on_non_finite=False, progress=progress)
     train_time = time.perf_counter() - start
 
-    test_set = data.load_split(data_config, "test")
+    test_set = data.load_split(data_config, "test", config.grid)
     if max_eval_windows:
         test_set = test_set.subset(range(min(max_eval_windows, len(test_set))))
     params = devices.gather(state.params) if devices is not None else state.params

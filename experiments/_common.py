@@ -1,0 +1,60 @@
+"""What the experiment scripts share: training and evaluating a run through the library, and
+parking an unfinished run so that another sitting (or machine) continues it.
+
+Run the scripts as `python experiments/<script>.py`: their folder is then on the path, and
+`from _common import ...` finds this module (the tests put it there through pytest's
+`pythonpath`).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from gst_jax.config import DataConfig, ModelConfig, TrainConfig
+from gst_jax.evaluation import evaluate_run, format_markdown
+from gst_jax.io.workdir import WorkDir
+from gst_jax.runs import load_run
+from gst_jax.training.loop import fit
+
+
+def train(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
+          workdir: Path) -> None:
+    """Train (or resume) the run in `workdir`, as `python -m gst_jax.train` does."""
+    print(f"training {workdir}", flush=True)
+    fit(model_config, data_config, train_config, workdir)
+
+
+def evaluate(workdir: Path, data_config: DataConfig | None = None) -> dict:
+    """Evaluate the run's latest checkpoint on a test split (default: its own) with the
+    paper protocol and record it in its eval/, as `python -m gst_jax.evaluate` does."""
+    run = load_run(workdir)
+    data_config = data_config or run.data_config
+    result = evaluate_run(run, data_config, "test")
+    WorkDir(workdir).write_evaluation(data_config, "test", run.epoch, result,
+                                      format_markdown(result))
+    print(f"evaluated {workdir} on {data_config.scene}: AOE {result['aoe']:.3f} "
+          f"FOE {result['foe']:.3f}", flush=True)
+    return result
+
+
+def latest_checkpoint(workdir: Path) -> int | None:
+    """The epoch of the run's newest checkpoint, or None before the first (reads no array)."""
+    folder = Path(workdir) / "checkpoints"
+    epochs = [int(p.name) for p in folder.iterdir() if p.name.isdigit()] if folder.is_dir() else []
+    return max(epochs, default=None)
+
+
+def park(workdir: Path, destination: Path) -> int | None:
+    """Copy the run's config and newest checkpoint (with its checksums) to `destination`, a
+    work directory from which training continues elsewhere; returns the checkpoint's epoch,
+    or None before the first checkpoint."""
+    epoch = latest_checkpoint(workdir)
+    if epoch is None:
+        return None
+    source = Path(workdir)
+    shutil.rmtree(destination, ignore_errors=True)
+    shutil.copytree(source / "checkpoints" / str(epoch), destination / "checkpoints" / str(epoch))
+    shutil.copy2(source / "checkpoints" / "checksums.json", destination / "checkpoints")
+    shutil.copy2(source / "config.json", destination / "config.json")
+    return epoch

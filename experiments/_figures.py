@@ -1,0 +1,87 @@
+"""Figures of the paper's tables and of the comparative study across datasets (Figs. 4-6):
+improvement of partial over fully detected observation per dataset and n, improvement of the
+best sparse n over full connection against crowd density, the best n per dataset, and Table I
+as bars (ours, the paper's and constant velocity per scene)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from gst_jax.figures import n_label, plt, save
+
+
+def partial_vs_full_detection(all_results: Sequence[dict], path: Path) -> Path:
+    """Grouped bars: AOE improvement (%) of partial over fully detected, per dataset and n."""
+    fig, ax = plt.subplots(figsize=(7.0, 2.8))
+    scenes = [r["scene"] for r in all_results]
+    heads = sorted({int(n) for r in all_results for n in r["partial_vs_fully_detected"]})
+    width = 0.8 / max(len(heads), 1)
+    for k, n in enumerate(heads):
+        values = [r["partial_vs_fully_detected"].get(str(n), {}).get("aoe_pct", float("nan"))
+                  for r in all_results]
+        ax.bar([i + k * width for i in range(len(scenes))], values, width, label=f"n={n_label(n)}")
+    ax.axhline(0, color="black", lw=0.8)
+    ax.set_xticks([i + 0.4 - width / 2 for i in range(len(scenes))], scenes)
+    ax.set_ylabel("AOE improvement,\npartial over full (%)")
+    ax.legend(fontsize=7, ncol=len(heads))
+    ax.grid(axis="y", alpha=0.3)
+    return save(fig, path)
+
+
+def sparse_gain_against_density(all_results: Sequence[dict], path: Path) -> Path:
+    """Improvement of the best sparse n over full connection against crowd density."""
+    fig, ax = plt.subplots(figsize=(3.6, 2.8))
+    for r in all_results:
+        gain = r.get("sparse_vs_full_connection_partial")
+        if gain:
+            ax.scatter(r["density"], gain["aoe_pct"], color="tab:blue")
+            ax.annotate(r["scene"], (r["density"], gain["aoe_pct"]), fontsize=7,
+                        xytext=(3, 3), textcoords="offset points")
+    ax.axhline(0, color="black", lw=0.8)
+    ax.set_xlabel("partially detected pedestrians per window")
+    ax.set_ylabel("AOE improvement, best\nsparse n over full (%)")
+    ax.grid(alpha=0.3)
+    return save(fig, path)
+
+
+def best_n_per_dataset(all_results: Sequence[dict], path: Path) -> Path:
+    """Bar per dataset: the best sparse n (by AOE, partial detection)."""
+    fig, ax = plt.subplots(figsize=(3.6, 2.8))
+    rows = [(r["scene"], r["best_n_partial"]) for r in all_results if "best_n_partial" in r]
+    ax.bar([s for s, _ in rows], [n for _, n in rows], color="tab:blue")
+    ax.set_yscale("log", base=2)
+    ax.set_ylabel("best n")
+    ax.grid(axis="y", alpha=0.3)
+    return save(fig, path)
+
+
+def table1_against_paper(rows: Sequence[dict], path: Path, title: str,
+                         paper_label: str = "paper") -> Path:
+    """Grouped bars per scene, AOE and FOE: ours (± spread), the paper's, constant velocity.
+
+    rows: experiments/table1.py's rows; a scene without a finished run has no "ours" bar
+    and is marked "missing".
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(8.0, 2.8))
+    x = np.arange(len(rows))
+    width = 0.27
+    for ax, metric in zip(axes, ("aoe", "foe")):
+        ours = [r.get(metric, np.nan) for r in rows]
+        ax.bar(x - width, ours, width, yerr=[r.get(f"{metric}_spread", 0.0) for r in rows],
+               capsize=2, color="tab:blue", label="ours")
+        ax.bar(x, [r[f"paper_{metric}"] for r in rows], width, color="tab:gray", label=paper_label)
+        ax.bar(x + width, [r[f"cv_{metric}"] for r in rows], width, color="tab:orange",
+               label="constant velocity")
+        for i, r in enumerate(rows):
+            if metric not in r:
+                ax.text(x[i] - width, 0.02, "missing", rotation=90, fontsize=6,
+                        ha="center", va="bottom")
+        ax.set_xticks(x, [r["scene"] for r in rows])
+        ax.set_ylabel(f"{metric.upper()} (m)")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=8)
+    return save(fig, path)

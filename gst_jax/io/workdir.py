@@ -1,0 +1,234 @@
+"""Work directories, the only module that knows their layout, and how a run is named.
+
+    <workdir>/config.json                 the run's configuration (model, data, train[, members])
+    <workdir>/checkpoints/<epoch>/        orbax: the training state and the config
+    <workdir>/metrics.jsonl               one JSON line per epoch (with the code that trained it)
+    <workdir>/summary.json                the training's summary, once it has finished
+    <workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json, .md    evaluations
+    <workdir>/figures/                    figures of `python -m gst_jax.plot`
+    <workdir>/results.json, .csv, .md     a sweep's evaluation of its members
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import subprocess
+from pathlib import Path
+from typing import Sequence
+
+import jax
+
+from gst_jax.config import DataConfig, Member, ModelConfig, TrainConfig
+from gst_jax.errors import RunError
+from gst_jax.io.checkpoints import Checkpointer, write_atomically
+from gst_jax.model.heads import head
+
+# Where commands put work directories unless told (--workdir), relative to the current folder.
+RUNS = Path("runs")
+
+
+@functools.cache
+def code_version() -> str:
+    """The git commit of this gst_jax checkout ('+dirty' when gst_jax/ has uncommitted
+    changes), recorded with every epoch so that a result names the code that trained it;
+    outside a git checkout, $GST_JAX_CODE_VERSION where set (a tree copied to a cluster can
+    name the commit it was copied from), else 'gst_jax <version>' (a bare tree says so)."""
+    root = Path(__file__).resolve().parents[2]           # the checkout holding gst_jax/
+    git = ["git", "-C", str(root)]
+    try:
+        commit = subprocess.run([*git, "rev-parse", "--short=10", "HEAD"], capture_output=True,
+                                text=True, check=True, timeout=10).stdout.strip()
+        changes = subprocess.run([*git, "status", "--porcelain", "--untracked-files=no", "--",
+                                  "gst_jax"], capture_output=True, text=True, check=True,
+                                 timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        if named := os.environ.get("GST_JAX_CODE_VERSION"):
+            return named
+        from importlib.metadata import PackageNotFoundError, version
+        try:
+            return f"gst_jax {version('gst_jax')}"
+        except PackageNotFoundError:                # a copied source tree on PYTHONPATH
+            return "gst_jax (source tree without git)"
+    return commit + ("+dirty" if changes else "")
+
+
+def run_config(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
+               members: Sequence[Member] | None = None) -> dict:
+    """The JSON description of a run (or sweep), stored in its work dir and checkpoints."""
+    config = {"model": dataclasses.asdict(model_config), "data": dataclasses.asdict(data_config),
+              "train": dataclasses.asdict(train_config)}
+    if members is not None:
+        config["members"] = [dataclasses.asdict(m) for m in members]
+    return config
+
+
+def same_run(config: dict, other: dict) -> bool:
+    """Whether two run configs train the same thing: equal configs once read back
+    (`from_dict`: missing fields take their defaults, retired ones are dropped). The checkpoint
+    cadence says only how often the run is saved, so a resumed run may change it (e.g. to save
+    every epoch of a long run that has to be continued over several sittings)."""
+    def identity(c: dict) -> dict:
+        train = dataclasses.asdict(TrainConfig.from_dict(c["train"]))
+        del train["checkpoint_every"]
+        return {**c, "model": dataclasses.asdict(ModelConfig.from_dict(c["model"])),
+                "data": dataclasses.asdict(DataConfig.from_dict(c["data"])), "train": train}
+    return identity(config) == identity(other)
+
+
+def run_name(data_config: DataConfig, model_config: ModelConfig,
+             train_config: TrainConfig) -> str:
+    """A work directory name that identifies a run, so the same command finds it to resume."""
+    parts = [data_config.scene, data_config.protocol,
+             head(model_config.output).letter,
+             f"n{model_config.num_edge_heads}"]
+    if not model_config.ghost:
+        parts.append("noghost")
+    if model_config.temporal != "lstm":
+        parts.append(model_config.temporal)
+    if model_config.node_dim != ModelConfig.node_dim:
+        parts.append(f"d{model_config.node_dim}")
+    if train_config.fully_detected_only:
+        parts.append("fd")
+    if train_config.init:
+        parts.append("from-" + Path(train_config.init.replace(":", "-")).name)
+    if train_config.schedule != TrainConfig.schedule:
+        parts.append(train_config.schedule)
+    parts += [f"e{train_config.epochs}", f"seed{train_config.seed}"]
+    return "-".join(parts)
+
+
+def sweep_name(data_config: DataConfig, train_config: TrainConfig) -> str:
+    """The default work directory name of a sweep."""
+    schedule = "" if train_config.schedule == TrainConfig.schedule else f"-{train_config.schedule}"
+    return f"sweep-{data_config.scene}{schedule}-e{train_config.epochs}"
+
+
+class WorkDir:
+    """The files of one work directory (see the module docstring for the layout).
+
+    With several processes (`gst_jax.parallel`), process 0 alone writes the files that are
+    written once (config, metrics, summary, evaluations); the checkpoints are written by
+    all, through orbax's multi-process path.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    @property
+    def writes(self) -> bool:
+        """Whether this process writes the files written once (asked when writing: jax's
+        processes must be joined before jax is first used)."""
+        return jax.process_index() == 0
+
+    def __repr__(self) -> str:
+        return f"WorkDir({str(self.path)!r})"
+
+    @property
+    def metrics_path(self) -> Path:
+        return self.path / "metrics.jsonl"
+
+    @property
+    def figures(self) -> Path:
+        return self.path / "figures"
+
+    def prepare(self, config: dict) -> None:
+        """Create the work dir, or check that an existing one belongs to the same run (its
+        config.json and, should that be gone, the config stored with its checkpoints)."""
+        config_path = self.path / "config.json"
+        if config_path.exists():
+            stored = json.loads(config_path.read_text())
+            if not same_run(stored, config):
+                raise RunError(f"{self.path} holds a run with a different configuration "
+                               f"({config_path}); choose another --workdir or delete it")
+            if stored != config and self.writes:        # a new checkpoint cadence
+                config_path.write_text(json.dumps(config, indent=2) + "\n")
+            return
+        if (self.path / "checkpoints").is_dir():
+            checkpointer = self.checkpointer(create=False)
+            try:
+                stored = (config if checkpointer.latest_epoch is None
+                          else checkpointer.read_config())
+            finally:
+                checkpointer.close()
+            if not same_run(stored, config):
+                raise RunError(f"{self.path} holds checkpoints of a run with a different "
+                               "configuration (its config.json is missing); choose another "
+                               "--workdir or delete it")
+        self.path.mkdir(parents=True, exist_ok=True)
+        if self.writes:
+            config_path.write_text(json.dumps(config, indent=2) + "\n")
+
+    def checkpointer(self, *, create: bool = True) -> Checkpointer:
+        """The run's checkpoints; `create=False` reads only and fails without creating
+        anything where there are none."""
+        directory = self.path / "checkpoints"
+        if not create and not directory.is_dir():
+            raise RunError(f"no checkpoint in {self.path} (expected {directory}/<epoch>)")
+        return Checkpointer(directory, create=create)
+
+    def read_metrics(self) -> list[dict]:
+        """The per-epoch records of metrics.jsonl, in order ([] before the first epoch)."""
+        if not self.metrics_path.exists():
+            return []
+        return [json.loads(line) for line in self.metrics_path.read_text().splitlines()
+                if line.strip()]
+
+    def append_metrics(self, record: dict) -> None:
+        if not self.writes:
+            return
+        with self.metrics_path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    def write_metrics(self, records: list[dict]) -> None:
+        """Replace metrics.jsonl by `records` (a resume: those of its checkpoint, which drop
+        what a killed run wrote after it and restore what it did not get to write)."""
+        if self.writes:
+            lines = "".join(json.dumps(r) + "\n" for r in records)
+            write_atomically(self.metrics_path, lines)
+
+    def code_versions(self) -> list[str]:
+        """The code versions that trained the run's epochs, in order of first use."""
+        return list(dict.fromkeys(r["code"] for r in self.read_metrics() if "code" in r))
+
+    def training_time_s(self) -> float:
+        """Sum of the epoch times: the training's wall time across resumes."""
+        return sum(r.get("epoch_time_s", 0.0) for r in self.read_metrics())
+
+    def write_summary(self, summary: dict) -> None:
+        if self.writes:
+            (self.path / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+
+    def evaluation_path(self, data_config: DataConfig, split: str, epoch: int) -> Path:
+        """eval/<scene>-<protocol>-<split>-e<epoch>.json (the .md beside it)."""
+        return (self.path / "eval"
+                / f"{data_config.scene}-{data_config.protocol}-{split}-e{epoch}.json")
+
+    def read_evaluation(self, data_config: DataConfig, split: str, epoch: int) -> dict | None:
+        path = self.evaluation_path(data_config, split, epoch)
+        return json.loads(path.read_text()) if path.exists() else None
+
+    def check_writable(self) -> None:
+        """Refuse early where results could not be written (a read-only work directory)."""
+        folder = self.path / "eval"
+        while not folder.exists() and folder != folder.parent:     # what would be created
+            folder = folder.parent
+        if not os.access(folder, os.W_OK):
+            raise RunError(f"cannot write in {folder}; evaluate a writable copy, or print the "
+                           "result with --json")
+
+    def write_evaluation(self, data_config: DataConfig, split: str, epoch: int, result: dict,
+                         markdown: str) -> Path:
+        """Write an evaluation's JSON and markdown (process 0); returns the JSON path."""
+        path = self.evaluation_path(data_config, split, epoch)
+        if self.writes:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(result, indent=2) + "\n")
+            path.with_suffix(".md").write_text(markdown)
+        return path
+
+    def results_path(self, suffix: str) -> Path:
+        """A sweep's results.<suffix>."""
+        return self.path / f"results.{suffix}"
