@@ -19,7 +19,9 @@ CROWD_SCENES = ETH_UCY_SCENES + TRAJNET_SCENES
 CROWD = "crowd"
 SCENES = CROWD_SCENES + (CROWD,)
 PROTOCOLS = ("paper", "paper-val", "loo")
-TEMPORAL_MODELS = ("lstm", "tcn")
+# lstm: the paper's masked LSTM; faster_lstm: gst_updated's (CrowdNav++), whose LSTM steps
+# through every observed step (masked inputs, no held state); tcn: the release's readout.
+TEMPORAL_MODELS = ("lstm", "faster_lstm", "tcn")
 # Learning-rate and temperature schedules (gst_jax.training.schedules).
 SCHEDULES = ("paper", "compressed")
 # n, the number of edge heads; 0 = full connection (the paper's "F", no selector).
@@ -121,8 +123,10 @@ class ModelConfig(_FromDict):
       output: the output head (`gst_jax.model.heads.HEADS`): 'deterministic' (GST (D)) or
         'gaussian' (GST (P)).
       temporal: 'lstm' (paper default: recurrent rollout with interaction at every predicted
-        step) or 'tcn' (the release's temporal convolution readout: interaction over the
-        observed steps only, all predicted steps at once).
+        step), 'faster_lstm' (the same, but the observation LSTM steps through every observed
+        step with masked inputs instead of holding its state: gst_updated's, CrowdNav++'s)
+        or 'tcn' (the release's temporal convolution readout: interaction over the observed
+        steps only, all predicted steps at once).
       step_s / obs_len / pred_len: the model's time grid (`grid`): steps observed and
         predicted, step_s seconds apart.
     """
@@ -138,7 +142,7 @@ class ModelConfig(_FromDict):
     lstm_hidden: int = 32
     dropout: float = 0.1
     output: str = "deterministic"
-    temporal: Literal["lstm", "tcn"] = "lstm"
+    temporal: Literal["lstm", "faster_lstm", "tcn"] = "lstm"
     step_s: float = TimeGrid.step_s
     obs_len: int = TimeGrid.obs_len
     pred_len: int = TimeGrid.pred_len
@@ -153,7 +157,19 @@ class ModelConfig(_FromDict):
             raise ValueError(f"num_edge_heads {self.num_edge_heads} must divide max_edge_heads "
                              f"{self.max_edge_heads}")
         if self.temporal not in TEMPORAL_MODELS:
-            raise ValueError(f"temporal model {self.temporal!r}: expected 'lstm' or 'tcn'")
+            raise ValueError(f"temporal model {self.temporal!r}: expected one of "
+                             f"{', '.join(TEMPORAL_MODELS)}")
+
+    @property
+    def recurrent(self) -> bool:
+        """Whether the prediction is a recurrent rollout (an LSTM), not the TCN readout."""
+        return self.temporal != "tcn"
+
+    @property
+    def selects_edges(self) -> bool:
+        """Whether the program holds an edge selector. One built for full connection alone (n
+        = 0, no head slots asked for) has none: its traced n can only be 0."""
+        return self.num_edge_heads > 0 or self.max_edge_heads > 0
 
     @property
     def grid(self) -> TimeGrid:

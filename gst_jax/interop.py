@@ -33,10 +33,11 @@ def load_state_dict(source: str | Path | Mapping[str, Any]) -> dict[str, np.ndar
         raise ImportError(f"reading {source} needs torch; pass a dict of numpy arrays "
                           "instead (e.g. {k: v.numpy() for k, v in state_dict.items()})") from error
     # The release's checkpoints also hold its epoch metrics as numpy scalars; allow those
-    # (and nothing else beyond tensors) rather than unpickling arbitrary objects.
-    multiarray = (np._core if hasattr(np, "_core") else np.core).multiarray  # numpy 2 / 1
-    numpy_scalars = [multiarray.scalar, np.dtype, type(np.dtype(np.float32)),
-                     type(np.dtype(np.float64))]
+    # (and nothing else beyond tensors) rather than unpickling arbitrary objects. Pickled
+    # under numpy 1, the scalar is named numpy.core's, which numpy 2 moved to numpy._core.
+    multiarray = (np._core if hasattr(np, "_core") else np.core).multiarray
+    numpy_scalars = [multiarray.scalar, (multiarray.scalar, "numpy.core.multiarray.scalar"),
+                     np.dtype, type(np.dtype(np.float32)), type(np.dtype(np.float64))]
     with torch.serialization.safe_globals(numpy_scalars):
         loaded = torch.load(str(source), map_location="cpu", weights_only=True)
     if "model_state_dict" in loaded:  # the release's checkpoint layout
@@ -50,7 +51,9 @@ def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
 
     PyTorch Linear stores W as (out, in); flax kernels are (in, out). The selector's per-head
     MLP (head_dim = 128 / n) goes into the top-left block of the padded 128 x 128 weight.
-    With n = 0 the release has no selector; its parameters are zero (and unused).
+    With n = 0 the release has no selector; its parameters are zero (and unused). The later
+    gst_updated (CrowdNav++) keeps the node embedding inside its transformer and, without a
+    selector, has no edge embedding (zero here, and unused).
     """
     state_dict = state_dict if isinstance(state_dict, Mapping) else load_state_dict(state_dict)
     if num_edge_heads and max_edge_heads % num_edge_heads:
@@ -62,8 +65,12 @@ def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
     dense = lambda prefix: {"kernel": w(prefix + "weight").T, "bias": w(prefix + "bias")}
     norm = lambda prefix: {"scale": w(prefix + "weight"), "bias": w(prefix + "bias")}
 
-    params = {"node_embedding": dense("node_embedding."),
-              "edge_embedding": dense("edge_embedding."),
+    node_embedding = ("node_embedding." if "node_embedding.weight" in state_dict
+                      else "gumbel_social_transformer.node_embedding.")
+    edge_embedding = (dense("edge_embedding.") if "edge_embedding.weight" in state_dict
+                      else {"kernel": jnp.zeros((2, config.edge_dim)),
+                            "bias": jnp.zeros(config.edge_dim)})
+    params = {"node_embedding": dense(node_embedding), "edge_embedding": edge_embedding,
               "hidden2pos": dense("hidden2pos."),
               "lstm": {"weight_ih": w("lstm.weight_ih_l0").T, "weight_hh": w("lstm.weight_hh_l0").T,
                        "bias_ih": w("lstm.bias_ih_l0"), "bias_hh": w("lstm.bias_hh_l0")}}

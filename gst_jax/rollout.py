@@ -6,7 +6,8 @@ carry holds the LSTM state, the last displacement, the evolving edges and the PR
 runs on the first P slots when the batch says the pedestrians to predict sit there
 (`SceneBatch.predicted_slots`), since nobody else takes part after the observation.
 With `temporal='tcn'` the prediction is instead the release's convolutional readout of the
-encoded observed steps, all predicted steps at once.
+encoded observed steps, all predicted steps at once. With `mean=True` every predicted step is
+the mean of the output head's Gaussian (CrowdNav++'s `sampling=False`), whatever the head.
 
 Noise comes either from a key (`rollout`) or from recorded arrays (`rollout_with_noise`, used
 to replay the release's Gumbel and normal draws in the parity tests); both share one body.
@@ -70,15 +71,16 @@ class RolloutOutput:
 
 def rollout(params, key: jax.Array, batch: SceneBatch, config: ModelConfig, controls: Controls,
             *, hard: bool, deterministic: bool, return_attention: bool = False,
-            observed_edge_probs: jax.Array | None = None) -> RolloutOutput:
+            observed_edge_probs: jax.Array | None = None, mean: bool = False) -> RolloutOutput:
     """Predict `config.pred_len` steps for every pedestrian of `batch`, drawing noise from `key`.
 
     `observed_edge_probs` (from `observed_edge_probabilities`, deterministic rollouts only)
-    skips the observation pass's edge selector, so that samples share it.
+    skips the observation pass's edge selector, so that samples share it. mean: every step
+    is the head's mean, not its draw.
     """
     return _rollout(params, key, None, batch, config, controls, hard=hard,
                     deterministic=deterministic, return_attention=return_attention,
-                    observed_edge_probs=observed_edge_probs)
+                    observed_edge_probs=observed_edge_probs, mean=mean)
 
 
 def observed_edge_probabilities(params, batch: SceneBatch, config: ModelConfig,
@@ -148,15 +150,15 @@ _NOISE_AXES = RolloutNoise(gumbel_obs=0, gumbel_pred=1, normal=1)
 
 def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: SceneBatch,
              config: ModelConfig, controls: Controls, *, hard: bool, deterministic: bool,
-             return_attention: bool, observed_edge_probs: jax.Array | None = None
-             ) -> RolloutOutput:
+             return_attention: bool, observed_edge_probs: jax.Array | None = None,
+             mean: bool = False) -> RolloutOutput:
     """The rollout of every window of `batch`: `_rollout_window` vmapped over windows, each
     with its own key (`noise.window_keys`), so that a window's draws do not depend on the
     other windows of its batch."""
     def one_window(key, recorded, window, observed_edge_probs):
         return _rollout_window(params, key, recorded, window, config, controls, hard=hard,
                                deterministic=deterministic, return_attention=return_attention,
-                               observed_edge_probs=observed_edge_probs)
+                               observed_edge_probs=observed_edge_probs, mean=mean)
 
     in_axes = (0, None if recorded is None else _NOISE_AXES, 0,
                None if observed_edge_probs is None else 0)
@@ -167,8 +169,8 @@ def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: Scene
 
 def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, window: SceneBatch,
                     config: ModelConfig, controls: Controls, *, hard: bool, deterministic: bool,
-                    return_attention: bool, observed_edge_probs: jax.Array | None
-                    ) -> RolloutOutput:
+                    return_attention: bool, observed_edge_probs: jax.Array | None,
+                    mean: bool) -> RolloutOutput:
     """One window (the SceneBatch fields without their batch axis: positions (T, N, 2), ...)."""
     model = GST(config)
     obs_len, pred_len = config.obs_len, config.pred_len
@@ -182,13 +184,19 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
         return model.apply({"params": params}, *args, method=method, rngs=rngs, **kwargs)
 
     def draw(mu, sigma, corr, normal, keep):
-        return head.draw(mu, sigma, corr, normal) * keep[..., None]
+        return (mu if mean else head.draw(mu, sigma, corr, normal)) * keep[..., None]
+
+    def gumbel_noise(key, shape):
+        # A program without a selector (full connection alone) samples no graph.
+        return sample_gumbel(key, shape) if config.selects_edges else None
 
     # --- Observation: one selector/encoder call over all observed steps.
     node_features, edge_features, node_mask = _observed_inputs(window, obs_len)
     if recorded is None:
-        gumbel_obs = sample_gumbel(keys.gumbel_obs, (obs_len,) + noise_shape)
-        normal = noise.normal(keys.normal, (pred_len, num_nodes, 2))
+        gumbel_obs = gumbel_noise(keys.gumbel_obs, (obs_len,) + noise_shape)
+        normal_shape = (pred_len, num_nodes, 2)
+        normal = (noise.normal(keys.normal, normal_shape) if head.sampled and not mean
+                  else jnp.zeros(normal_shape))
     else:
         gumbel_obs, normal = recorded.gumbel_obs, recorded.normal
     encoded, obs_probs, obs_sampled, obs_attention = apply(
@@ -197,7 +205,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
         edge_probs=observed_edge_probs)
     keep = window.predicted_mask(obs_len)                                     # (N,)
 
-    if config.temporal == "tcn":
+    if not config.recurrent:
         # Readout: every predicted step from the observed encodings; no further interaction.
         _, dropout_key = jax.random.split(keys.steps)
         observed = encoded * node_mask[..., None] * keep[:, None]
@@ -210,7 +218,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
 
     def observe(state, step_inputs):
         inputs, mask = step_inputs
-        return apply(GST.recur, inputs, state, mask), None
+        return apply(GST.recur, inputs, state, mask, hold=config.temporal == "lstm"), None
 
     zeros = jnp.zeros((num_nodes, config.lstm_hidden), encoded.dtype)
     (hidden, cell), _ = jax.lax.scan(observe, (zeros, zeros), (encoded, node_mask))
@@ -231,7 +239,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
         key, gumbel_key, dropout_key = jax.random.split(carry.key, 3)
         gumbel, normal = recorded_step
         if gumbel is None:
-            gumbel = sample_gumbel(gumbel_key, noise_shape)
+            gumbel = gumbel_noise(gumbel_key, noise_shape)
         # Sampled displacements feed back detached (the release's `detach_sample`).
         fed_back = jax.lax.stop_gradient(carry.delta) if head.sampled else carry.delta
         edges = carry.edges + fed_back[:, None, :] - fed_back[None, :, :]

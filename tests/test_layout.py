@@ -27,6 +27,7 @@ LAYERS = (
     ("model", {"gst_jax.model."}),
     ("rollout", {"gst_jax.rollout"}),
     ("outputs", {"gst_jax.losses", "gst_jax.metrics", "gst_jax.predict", "gst_jax.interop",
+                 "gst_jax.crowdnav",
                  "gst_jax.prediction_files", "gst_jax.figures", "gst_jax.simulate",
                  "gst_jax.simulate.scenarios", "gst_jax.simulate.measures",
                  "gst_jax.simulate.loop", "gst_jax.simulate.figures"}),

@@ -275,15 +275,15 @@ def test_encoder_attention_weights_are_dropped_in_training_as_the_release_does()
     x = jax.random.normal(jax.random.key(0), (8, n, 32))
     valid = jnp.ones((8, n))
     adjacency = jnp.ones((8, n, n + 1))                     # everyone attends to everyone
-    variables = layer.init(jax.random.key(1), x, valid, adjacency, deterministic=True)
+    variables = layer.init(jax.random.key(1), x, valid, adjacency, True, deterministic=True)
     (_, weights), captured = layer.apply(
-        variables, x, valid, adjacency, deterministic=False, rngs={"dropout": jax.random.key(2)},
-        capture_intermediates=True)
+        variables, x, valid, adjacency, True, deterministic=False,
+        rngs={"dropout": jax.random.key(2)}, capture_intermediates=True)
     kept = np.asarray(captured["intermediates"]["attention_dropout"]["__call__"][0])
     ratio = kept / np.asarray(weights)                      # (8, heads, n, n + 1), all > 0
     np.testing.assert_allclose(np.unique(np.round(ratio, 5)), [0.0, 1 / 0.9], rtol=1e-5)
     assert abs((ratio > 0).mean() - 0.9) < 0.01             # 105k draws: sd 1e-3
-    _, evaluated = layer.apply(variables, x, valid, adjacency, deterministic=True)
+    _, evaluated = layer.apply(variables, x, valid, adjacency, True, deterministic=True)
     np.testing.assert_array_equal(evaluated, weights)       # returned before dropout
 
 

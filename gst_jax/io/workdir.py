@@ -86,7 +86,7 @@ def run_name(data_config: DataConfig, model_config: ModelConfig,
              f"n{model_config.num_edge_heads}"]
     if not model_config.ghost:
         parts.append("noghost")
-    if model_config.temporal != "lstm":
+    if model_config.temporal != ModelConfig.temporal:
         parts.append(model_config.temporal)
     if model_config.node_dim != ModelConfig.node_dim:
         parts.append(f"d{model_config.node_dim}")

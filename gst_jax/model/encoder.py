@@ -30,9 +30,13 @@ class NodeEncoderLayer(nn.Module):
         # The release's attention drops its weights too (torch's MHA dropout), ghost last.
         self.attention_dropout = Dropout(self.config.dropout, ghost_axis=-1)
 
-    def __call__(self, x: jax.Array, node_valid: jax.Array, sampled_adjacency: jax.Array, *,
-                 deterministic: bool) -> tuple[jax.Array, jax.Array]:
-        """x: (..., N, d); node_valid: (..., N); sampled_adjacency: (..., N, N+1) (ghost last).
+    def __call__(self, x: jax.Array, node_valid: jax.Array, sampled_adjacency: jax.Array,
+                 with_ghost_key: jax.Array | bool, *, deterministic: bool
+                 ) -> tuple[jax.Array, jax.Array]:
+        """x: (..., N, d); node_valid: (..., N); sampled_adjacency: (..., N, N+1) (ghost last);
+        with_ghost_key: () whether the ghost's key takes part in the softmax (the release's
+        ghost models); without, the model has no ghost key at all (its no-ghost models and full
+        connection), which matters where the ghost's score would outweigh every other.
 
         Returns the new x (..., N, d) and the attention weights (..., heads, N, N+1).
         """
@@ -45,6 +49,7 @@ class NodeEncoderLayer(nn.Module):
         q, k, v = qkv[..., :-1, :d], qkv[..., d:2 * d], qkv[..., 2 * d:]
         split = lambda t: t.reshape(t.shape[:-1] + (heads, d // heads))
         scores = jnp.einsum("...lhc,...mhc->...hlm", split(q), split(k)) / jnp.sqrt(d // heads)
+        scores = scores.at[..., -1].set(jnp.where(with_ghost_key, scores[..., -1], -jnp.inf))
         weights = float_mask_attention_weights(scores, sampled_adjacency[..., None, :, :])
         kept = self.attention_dropout(weights, deterministic=deterministic)
         attended = jnp.einsum("...hlm,...mhc->...lhc", kept, split(v)).reshape(x.shape)

@@ -33,7 +33,7 @@ class GST(nn.Module):
         self.edge_embedding = DenseParams(config.edge_dim, 2)  # used in factorised form
         self.edge_selector = EdgeSelector(config)
         self.node_encoder_layers = [NodeEncoderLayer(config) for _ in range(config.encoder_layers)]
-        if config.temporal == "lstm":
+        if config.recurrent:
             self.lstm = MaskedLSTMCell(config.lstm_hidden)
             self.hidden2pos = torch_dense(READOUT_SIZE, config.lstm_hidden)
         else:
@@ -60,31 +60,44 @@ class GST(nn.Module):
         """
         edges = adjacency(node_mask)
         node_embedding = self.node_embedding(node_features)
-        if edge_probs is None:
-            edge_probs = self.edge_selector(node_embedding, edge_features, self.edge_embedding(),
-                                            edges, controls, deterministic=deterministic)
-        sampled_edges, sampled_adjacency = sample_edges(edge_probs, noise, controls, hard=hard)
-        # Full connection (n = 0): the observed adjacency itself, no ghost.
+        # Full connection (n = 0): the observed adjacency itself, no ghost; as edges, in the
+        # first head slot.
         full = jnp.concatenate([edges, jnp.zeros_like(edges[..., :1])], axis=-1)
-        full_connection = controls.num_edge_heads == 0
-        sampled_adjacency = jnp.where(full_connection, full, sampled_adjacency)
-        sampled_adjacency = sampled_adjacency.at[..., -1].multiply(controls.ghost.astype(full.dtype))
-        first_head = jnp.arange(edge_probs.shape[-2]) == 0
+        first_head = jnp.arange(self.config.head_slots) == 0
         as_edges = jnp.where(first_head[:, None], full[..., None, :], 0.0)
-        edge_probs = jnp.where(full_connection, as_edges, edge_probs)
-        sampled_edges = jnp.where(full_connection, as_edges, sampled_edges)
+        with_ghost_key = False
+        if self.config.selects_edges:
+            if edge_probs is None:
+                edge_probs = self.edge_selector(node_embedding, edge_features,
+                                                self.edge_embedding(), edges, controls,
+                                                deterministic=deterministic)
+            sampled_edges, sampled_adjacency = sample_edges(edge_probs, noise, controls,
+                                                            hard=hard)
+            full_connection = controls.num_edge_heads == 0
+            sampled_adjacency = jnp.where(full_connection, full, sampled_adjacency)
+            sampled_adjacency = sampled_adjacency.at[..., -1].multiply(
+                controls.ghost.astype(full.dtype))
+            edge_probs = jnp.where(full_connection, as_edges, edge_probs)
+            sampled_edges = jnp.where(full_connection, as_edges, sampled_edges)
+            with_ghost_key = controls.ghost & ~full_connection
+        else:                       # a program for full connection alone: no selector runs
+            sampled_adjacency, edge_probs, sampled_edges = full, as_edges, as_edges
 
         x = node_embedding
         attention = []
         for layer in self.node_encoder_layers:
-            x, weights = layer(x, node_mask, sampled_adjacency, deterministic=deterministic)
+            x, weights = layer(x, node_mask, sampled_adjacency, with_ghost_key,
+                               deterministic=deterministic)
             attention.append(weights)
         return x, edge_probs, sampled_edges, jnp.stack(attention)
 
     def recur(self, inputs: jax.Array, state: tuple[jax.Array, jax.Array],
-              mask: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """One masked LSTM step: inputs (..., N, d), state (h, c) (..., N, H), mask (..., N)."""
-        return self.lstm(inputs * mask[..., None], state, mask)
+              mask: jax.Array, *, hold: bool = True) -> tuple[jax.Array, jax.Array]:
+        """One LSTM step on masked inputs: inputs (..., N, d), state (h, c) (..., N, H), mask
+        (..., N). hold: where the mask is 0 the state is kept (else the step runs on the
+        zeroed input, as gst_updated's faster_lstm observes)."""
+        return self.lstm(inputs * mask[..., None], state,
+                         mask if hold else jnp.ones_like(mask))
 
     def readout(self, hidden: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Gaussian parameters of the next displacement: mu (..., 2), sigma (..., 2), corr (...)."""
@@ -95,10 +108,12 @@ class GST(nn.Module):
         return _gaussian(self.tcn(encoded, deterministic=deterministic))
 
     def __call__(self, node_features, edge_features, node_mask, noise, controls):
-        """Touch every parameter once (used by `init`); inputs have a time axis (1, T_obs, ...)."""
+        """Touch every parameter once (used by `init`); inputs have a time axis (1, T_obs, ...).
+        The selector's are made even where the program runs none (one parameter layout)."""
+        self.select(node_features, edge_features, node_mask, controls, deterministic=True)
         encoded, *_ = self.interact(node_features, edge_features, node_mask, noise, controls,
                                     hard=False, deterministic=True)
-        if self.config.temporal == "tcn":
+        if not self.config.recurrent:
             return self.convolve(encoded, deterministic=True)
         zeros = jnp.zeros(encoded.shape[:-1] + (self.config.lstm_hidden,))
         hidden, _ = self.recur(encoded, (zeros, zeros), node_mask)

@@ -46,13 +46,14 @@ class Prediction:
     predicted_mask: jax.Array
 
 
-def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool = True
-                 ) -> Callable[..., Prediction]:
+def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool = True,
+                 mean: bool = False) -> Callable[..., Prediction]:
     """Build the jitted `predict(params, key, batch, controls=None) -> Prediction`.
 
     `controls` overrides the traced switches (n, ghost, tau); by default the config's n and
     ghost with tau = 0.03. `with_graph=False` drops the per-step graphs (they dominate memory
-    for large K and N) when only trajectories are needed. A batch holds T = obs_len observed
+    for large K and N) when only trajectories are needed. `mean=True` predicts every step as
+    the mean of the head's Gaussian (GST (P) without sampling its displacements). A batch holds T = obs_len observed
     steps (`make_batch`), or obs_len + pred_len (windows with their future, evaluation).
     """
     if num_samples < 1:
@@ -69,11 +70,12 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
             controls = Controls.from_config(config)
 
         # The observed steps' edge probabilities do not depend on the sample: computed once.
-        observed_probs = observed_edge_probabilities(params, batch, config, controls)
+        observed_probs = (observed_edge_probabilities(params, batch, config, controls)
+                          if config.selects_edges else None)
 
         def one_sample(sample_key):
             out = rollout(params, sample_key, batch, config, controls, hard=True,
-                          deterministic=True, observed_edge_probs=observed_probs)
+                          deterministic=True, observed_edge_probs=observed_probs, mean=mean)
             graph = (out.sampled_edges.sum(axis=-2), out.edge_probs) if with_graph else (None, None)
             return out.displacements, out.mu, out.sigma, out.corr, graph
 

@@ -33,7 +33,7 @@ def constant_velocity_model(positions: jax.Array, mask: jax.Array, key: jax.Arra
 
 def gst_model(params, config: ModelConfig, controls: Controls) -> StepModel:
     """The first predicted displacement of a GST (hard samples, no dropout)."""
-    if config.temporal == "lstm":
+    if config.recurrent:
         # The first displacement comes from the observed state, before any predicted step;
         # the TCN readout's layers are sized by pred_len, so it keeps them.
         config = dataclasses.replace(config, pred_len=1)
