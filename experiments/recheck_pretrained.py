@@ -20,7 +20,8 @@ def recheck(name: str) -> tuple[float, float]:
     meta = pretrained.load_meta(name)
     config, params = pretrained.load_pretrained(name)
     old = meta["check"]["aoe"]
-    meta["check"] = {**CHECK, "aoe": check_aoe(config, params, DataConfig.from_dict(meta["data"]))}
+    data_config = DataConfig.from_dict(meta["data"])
+    meta["check"] = {**CHECK, "aoe": check_aoe(config, params, data_config)}
     (pretrained.folder(name) / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     return old, meta["check"]["aoe"]
 

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
 from gst_jax.config import (DETECTION, EDGE_HEAD_CHOICES, PROTOCOLS, SCENES, SCHEDULES,
-                            TEMPORAL_MODELS, DataConfig, ModelConfig, TrainConfig)
+                            TEMPORAL_MODELS, DataConfig, ModelConfig, TimeGrid, TrainConfig)
 from gst_jax.data import data_name
 from gst_jax.errors import USER_ERRORS, DataError
 
@@ -129,8 +129,9 @@ def add_own_data_flags(group) -> None:
     group.add_argument("--fps", type=positive_float, default=None,
                        help="frame ids per second of --data (e.g. 10 for a 10 Hz tracker "
                             "numbering samples 0, 1, 2...); rates that are a multiple of the "
-                            "model's 2.5 Hz are resampled, others refused (default: an ndjson "
-                            "file's own rate, else rows 0.4 s apart)")
+                            "model's (2.5 Hz for the paper's) are resampled, others refused "
+                            "(default: an ndjson file's own rate, else rows one model step "
+                            "apart)")
     group.add_argument("--units", default="m", choices=tuple(UNITS),
                        help="unit of --data's coordinates (default: m)")
 
@@ -149,7 +150,7 @@ def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
 
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
     """--edge-heads (one n, or a comma-separated list for sweeps), --no-ghost, --output,
-    --temporal, --node-dim."""
+    --temporal, the widths and depth, and the time grid (--step, --obs-len, --pred-len)."""
     from gst_jax.model.heads import HEADS       # only commands that build a model load jax
 
     group = parser.add_argument_group("model")
@@ -168,12 +169,33 @@ def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool
                             "GST (P), bivariate Gaussians (default: deterministic)")
     group.add_argument("--temporal", default="lstm", choices=TEMPORAL_MODELS,
                        help="lstm: recurrent rollout, interacting at every predicted step "
-                            "(paper); tcn: the release's temporal convolution readout of the "
-                            "observed steps (default: lstm)")
+                            "(paper); faster_lstm: the same with gst_updated's (CrowdNav++'s) "
+                            "observation LSTM, which steps through undetected steps too; tcn: "
+                            "the release's temporal convolution readout of the observed steps "
+                            "(default: lstm)")
     group.add_argument("--node-dim", type=node_width, default=ModelConfig.node_dim,
                        help="d, the width of node embeddings and of the LSTM input; edges get "
                             "2d (default: 32, docs/MODEL.md; the release's training scripts "
                             "leave its --embedding_size at 64)")
+    group.add_argument("--encoder-layers", type=positive_int, default=ModelConfig.encoder_layers,
+                       help=f"node transformer layers (default: {ModelConfig.encoder_layers}; "
+                            "CrowdNav++'s model has 1)")
+    group.add_argument("--lstm-dim", type=positive_int, default=ModelConfig.lstm_hidden,
+                       help=f"the LSTM's hidden width (default: {ModelConfig.lstm_hidden})")
+    add_grid_flags(group)
+
+
+def add_grid_flags(group) -> None:
+    """--step, --obs-len, --pred-len: a model's time grid."""
+    grid = TimeGrid()
+    group.add_argument("--step", type=positive_float, default=grid.step_s, metavar="SECONDS",
+                       help=f"the model's time step: data at a multiple of its rate are "
+                            f"resampled to it (default: {grid.step_s:g}, the paper's 2.5 Hz; "
+                            "CrowdNav++: 0.25)")
+    group.add_argument("--obs-len", type=positive_int, default=grid.obs_len,
+                       help=f"observed steps (default: {grid.obs_len})")
+    group.add_argument("--pred-len", type=positive_int, default=grid.pred_len,
+                       help=f"predicted steps (default: {grid.pred_len})")
 
 
 def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> None:
@@ -299,7 +321,12 @@ def model_config(args: argparse.Namespace) -> ModelConfig:
     edge_heads = args.edge_heads if isinstance(args.edge_heads, int) else args.edge_heads[0]
     return ModelConfig(num_edge_heads=edge_heads, ghost=not args.no_ghost,
                        output=args.output, temporal=args.temporal, node_dim=args.node_dim,
-                       edge_dim=2 * args.node_dim)
+                       edge_dim=2 * args.node_dim, encoder_layers=args.encoder_layers,
+                       lstm_hidden=args.lstm_dim, **dataclasses.asdict(time_grid(args)))
+
+
+def time_grid(args: argparse.Namespace) -> TimeGrid:
+    return TimeGrid(step_s=args.step, obs_len=args.obs_len, pred_len=args.pred_len)
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:

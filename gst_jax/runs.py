@@ -72,7 +72,8 @@ def load_run(path: str | Path, epoch: int | None = None) -> Run:
         checkpointer.close()
     return Run(name=str(path), model_config=model_config,
                data_config=DataConfig.from_dict(config["data"]),
-               train_config=TrainConfig.from_dict(config["train"]), params=state.params, epoch=epoch,
+               train_config=TrainConfig.from_dict(config["train"]), params=state.params,
+               epoch=epoch,
                workdir=workdir)
 
 
@@ -99,7 +100,7 @@ def load_member(path: str | Path, name: str, epoch: int | None = None) -> Run:
         checkpointer.close()
     member = members[names.index(name)]
     train_config = TrainConfig.from_dict({**config["train"], "seed": member.seed,
-                                  "fully_detected_only": member.fully_detected_only})
+                                          "fully_detected_only": member.fully_detected_only})
     return Run(name=f"{path}:{name}", model_config=member_config(model_config, member),
                data_config=DataConfig.from_dict(config["data"]), train_config=train_config,
                params=unstack(state.params, names.index(name)), epoch=epoch, workdir=workdir)
@@ -113,5 +114,6 @@ def load_pretrained_run(name: str) -> Run:
         raise RunError(error.args[0]) from None
     model_config, params = pretrained.load_pretrained(name)
     return Run(name=f"pretrained:{name}", model_config=model_config,
-               data_config=DataConfig.from_dict(meta["data"]), train_config=TrainConfig.from_dict(meta["train"]),
+               data_config=DataConfig.from_dict(meta["data"]),
+               train_config=TrainConfig.from_dict(meta["train"]),
                params=params, epoch=meta["epoch"], workdir=None)

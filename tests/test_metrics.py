@@ -132,6 +132,7 @@ def test_a_new_metric_is_one_function_and_one_line(monkeypatch):
     truth = batch.positions[:, 8:]
     pred = np.stack([truth + [0.0, 0.3], truth + [0.0, 0.1]])      # 0.3 m off, then 0.1 m
     result = score([PredictedBatch(batch, pred, np.ones((1, 2)))], obs_len=8)
-    assert result["max_error"] == pytest.approx(0.2) and result["max_error_std"] == pytest.approx(0.1)
+    assert result["max_error"] == pytest.approx(0.2)
+    assert result["max_error_std"] == pytest.approx(0.1)
     assert result["aoe"] == pytest.approx(0.2) and result["pedestrians"] == 2
     assert result["cv_aoe"] == pytest.approx(0.0, abs=1e-6)       # walkers at constant velocity

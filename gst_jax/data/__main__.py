@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from gst_jax import cli
-from gst_jax.config import ETH_UCY_SCENES, PROTOCOLS, SCENES, DataConfig, TimeGrid
+from gst_jax.config import ETH_UCY_SCENES, PROTOCOLS, SCENES, DataConfig
 from gst_jax.data.stats import format_stats, split_stats
 
 
@@ -17,10 +17,7 @@ def main(argv: list[str] | None = None) -> None:
                        help="scene to count (repeatable; default: the five ETH/UCY scenes)")
     stats.add_argument("--protocol", default="paper", choices=PROTOCOLS,
                        help="split protocol (default: paper)")
-    stats.add_argument("--obs-len", type=int, default=TimeGrid.obs_len,
-                       help=f"observed steps (default: {TimeGrid.obs_len})")
-    stats.add_argument("--pred-len", type=int, default=TimeGrid.pred_len,
-                       help=f"predicted steps (default: {TimeGrid.pred_len})")
+    cli.add_grid_flags(stats)
     stats.add_argument("--data-dir", default=None,
                        help="folder holding eth_ucy/ and trajnetpp/ (default: bundled data/)")
     cli.add_own_data_flags(stats)
@@ -32,9 +29,8 @@ def main(argv: list[str] | None = None) -> None:
 def show_stats(args) -> None:
     args.scene, scenes = None, args.scene      # --scene is repeatable here: a list
     config = cli.data_config(args, DataConfig(protocol=args.protocol))
-    grid = TimeGrid(obs_len=args.obs_len, pred_len=args.pred_len)
     result = split_stats(config, [config.scene] if config.data else
-                         scenes or list(ETH_UCY_SCENES), grid)
+                         scenes or list(ETH_UCY_SCENES), cli.time_grid(args))
     print(json.dumps(result, indent=1) if args.json else format_stats(result))
 
 

@@ -114,8 +114,10 @@ def _check(config: DataConfig, split: str) -> None:
 @functools.lru_cache(maxsize=64)
 def _cut(path: Path, config: DataConfig, grid: TimeGrid) -> tuple[Window | None, ...]:
     tracks = read_tracks(path, drop_off_grid=config.drop_off_grid)
-    if config.data:                       # bundled scenes are used as released (0.4 s apart)
+    if config.data:
         tracks = to_model_rate(tracks, config.fps, grid.hz, config.scale)
+    elif grid.step_s != TimeGrid.step_s:  # bundled scenes are used as released, 0.4 s apart
+        tracks = to_model_rate(tracks, TimeGrid().hz * tracks.frame_step, grid.hz)
     return tuple(cut_windows(tracks, grid.seq_len, grid.obs_len))
 
 

@@ -21,7 +21,7 @@ from typing import Sequence
 
 import jax
 
-from gst_jax.config import DataConfig, Member, ModelConfig, TrainConfig
+from gst_jax.config import DataConfig, Member, ModelConfig, TimeGrid, TrainConfig
 from gst_jax.errors import RunError
 from gst_jax.io.checkpoints import Checkpointer, write_atomically
 from gst_jax.model.heads import head
@@ -90,6 +90,13 @@ def run_name(data_config: DataConfig, model_config: ModelConfig,
         parts.append(model_config.temporal)
     if model_config.node_dim != ModelConfig.node_dim:
         parts.append(f"d{model_config.node_dim}")
+    if model_config.encoder_layers != ModelConfig.encoder_layers:
+        parts.append(f"layers{model_config.encoder_layers}")
+    if model_config.lstm_hidden != ModelConfig.lstm_hidden:
+        parts.append(f"lstm{model_config.lstm_hidden}")
+    if model_config.grid != TimeGrid():
+        grid = model_config.grid
+        parts.append(f"{grid.obs_len}+{grid.pred_len}x{grid.step_s:g}s")
     if train_config.fully_detected_only:
         parts.append("fd")
     if train_config.init:

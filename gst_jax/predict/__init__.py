@@ -53,8 +53,9 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
     `controls` overrides the traced switches (n, ghost, tau); by default the config's n and
     ghost with tau = 0.03. `with_graph=False` drops the per-step graphs (they dominate memory
     for large K and N) when only trajectories are needed. `mean=True` predicts every step as
-    the mean of the head's Gaussian (GST (P) without sampling its displacements). A batch holds T = obs_len observed
-    steps (`make_batch`), or obs_len + pred_len (windows with their future, evaluation).
+    the mean of the head's Gaussian (GST (P) without sampling its displacements). A batch
+    holds T = obs_len observed steps (`make_batch`), or obs_len + pred_len (windows with
+    their future, evaluation).
     """
     if num_samples < 1:
         raise ValueError(f"num_samples must be at least 1, got {num_samples}")

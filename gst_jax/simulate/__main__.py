@@ -16,7 +16,7 @@ from pathlib import Path
 from gst_jax import cli
 from gst_jax.runs import load_model
 from gst_jax.simulate.scenarios import SCENARIOS
-from gst_jax.simulate.study import format_markdown, run_scenarios, step_models
+from gst_jax.simulate.study import format_markdown, run_scenarios, step_models, time_grid
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -41,10 +41,10 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def simulate(args) -> None:
-    models = step_models([load_model(spec) for spec in args.runs], args.edge_heads)
+    runs = [load_model(spec) for spec in args.runs]
     names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
-    rows = run_scenarios(models, names, Path(args.workdir), seed=args.seed,
-                         animate=args.animate)
+    rows = run_scenarios(step_models(runs, args.edge_heads), names, Path(args.workdir),
+                         grid=time_grid(runs), seed=args.seed, animate=args.animate)
     if args.json:
         print(json.dumps(rows, indent=2))
         return

@@ -2,9 +2,9 @@
 
 Holonomic agents on a plane, stepping on the scenario's time grid (the model's). Agent 0 is
 the robot; it is an agent like the others. At every step each detected agent moves by the
-first displacement a model predicts from the last obs_len observed steps of everyone detected. An agent not yet detected walks its
-scripted straight line, unseen by the model, until its detection step. The whole loop is one
-jitted `lax.scan` with the model call inside.
+first displacement a model predicts from the last obs_len observed steps of everyone
+detected. An agent not yet detected walks its scripted straight line, unseen by the model,
+until its detection step. The whole loop is one jitted `lax.scan` with the model call inside.
 """
 
 from __future__ import annotations

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Sequence
@@ -10,6 +11,7 @@ import jax
 import numpy as np
 
 from gst_jax.config import EVAL_TAU, TimeGrid
+from gst_jax.errors import RunError
 from gst_jax.model import Controls
 from gst_jax.runs import Run
 from gst_jax.simulate.figures import animate_run, plot_run
@@ -27,11 +29,25 @@ def step_models(runs: Sequence[Run], edge_heads: Sequence[int] | None = None
     models: list[tuple[str, StepModel]] = [("constant velocity", constant_velocity_model)]
     for run in runs:
         label = Path(run.name).name        # 'eth-paper-...', 'hotel:n4-...', 'pretrained:eth'
-        for n in edge_heads or [run.model_config.num_edge_heads]:
-            controls = Controls.make(EVAL_TAU, n, run.model_config.ghost)
-            models.append((f"{label} n={n if n else 'F'}",
-                           gst_model(run.params, run.model_config, controls)))
+        config = run.model_config
+        if edge_heads and not config.selects_edges:
+            # Built for full connection alone, its program has no selector: give it one.
+            config = dataclasses.replace(config, max_edge_heads=config.head_slots)
+        for n in edge_heads or [config.num_edge_heads]:
+            controls = Controls.make(EVAL_TAU, n, config.ghost)
+            models.append((f"{label} n={n if n else 'F'}", gst_model(run.params, config,
+                                                                     controls)))
     return models
+
+
+def time_grid(runs: Sequence[Run]) -> TimeGrid:
+    """The time grid the runs share (the paper's without a run): the simulator's steps."""
+    grids = {run.model_config.grid for run in runs} or {TimeGrid()}
+    if len(grids) > 1:
+        raise RunError("the models have different time grids ("
+                       + ", ".join(f"{g.step_s:g} s, {g.obs_len} observed" for g in grids)
+                       + "): simulate them separately")
+    return grids.pop()
 
 
 def run_scenarios(models: Sequence[tuple[str, StepModel]], scenario_names: Sequence[str],
