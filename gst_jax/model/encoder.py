@@ -43,16 +43,22 @@ class NodeEncoderLayer(nn.Module):
         heads = self.config.encoder_heads
         d = self.config.node_dim
         x = self.norm_node(x) * node_valid[..., None]
-        # Keys and values include a zero ghost row; its column of the mask decides its use.
-        with_ghost = jnp.concatenate([x, jnp.zeros_like(x[..., :1, :])], axis=-2)
-        qkv = self.in_proj(with_ghost)
-        q, k, v = qkv[..., :-1, :d], qkv[..., d:2 * d], qkv[..., 2 * d:]
+        num_nodes = x.shape[-2]
+        # Keys and values include a zero ghost row, unless a program never has a ghost key
+        # (with_ghost_key statically False: full connection alone).
+        no_ghost = with_ghost_key is False
+        keys = x if no_ghost else jnp.concatenate([x, jnp.zeros_like(x[..., :1, :])], axis=-2)
+        qkv = self.in_proj(keys)
+        q, k, v = qkv[..., :num_nodes, :d], qkv[..., d:2 * d], qkv[..., 2 * d:]
         split = lambda t: t.reshape(t.shape[:-1] + (heads, d // heads))
         scores = jnp.einsum("...lhc,...mhc->...hlm", split(q), split(k)) / jnp.sqrt(d // heads)
-        scores = scores.at[..., -1].set(jnp.where(with_ghost_key, scores[..., -1], -jnp.inf))
+        ghost_score = (jnp.full_like(scores[..., -1], -jnp.inf) if no_ghost else
+                       jnp.where(with_ghost_key, scores[..., -1], -jnp.inf))
+        scores = jnp.concatenate([scores[..., :num_nodes], ghost_score[..., None]], axis=-1)
         weights = float_mask_attention_weights(scores, sampled_adjacency[..., None, :, :])
         kept = self.attention_dropout(weights, deterministic=deterministic)
-        attended = jnp.einsum("...hlm,...mhc->...lhc", kept, split(v)).reshape(x.shape)
+        attended = jnp.einsum("...hlm,...mhc->...lhc", kept[..., :v.shape[-2]],
+                              split(v)).reshape(x.shape)
         # The residual adds to the normalised x, as the release does.
         x = x + self.dropout(self.out_proj(attended), deterministic=deterministic)
         feed_forward = self.linear2(self.dropout(nn.relu(self.linear1(self.norm1_node(x))),

@@ -155,7 +155,7 @@ class EdgeSelector(nn.Module):
             return t[..., 0, :, :], t[..., 1, :, :], t[..., 2, :, :]
 
         pq, pk, pv = grouped(node_part)                                          # (..., L, G, w)
-        bq, bk, bv = grouped(basis)                                              # (..., N, R, G, w)
+        bq, bk, _ = grouped(basis)                                               # (..., N, R, G, w)
         # q_il . k_im = P_l.P_m + c~_im.(B_i.P_l) + c~_il.(B_i.P_m) + c~_il (B_i.B_i) c~_im
         pq_bk = jnp.einsum("...lgc,...isgc->...igls", pq, bk)
         bq_pk = jnp.einsum("...irgc,...mgc->...igrm", bq, pk)
@@ -172,8 +172,14 @@ class EdgeSelector(nn.Module):
         weights = float_mask_attention_weights(scores, edge_pair_mask)           # (..., N, H, L, L)
         group_weights = jnp.einsum("...hlm,gh->...glm", weights, heads)
         mixed_coefficients = jnp.einsum("...glm,...ms->...gls", group_weights, c)
-        hidden = (jnp.einsum("...glm,...mgc->...lgc", group_weights, pv[..., None, :, :, :])
-                  + jnp.einsum("...gls,...sgc->...lgc", mixed_coefficients, bv))
+        # The values' basis B_i is the target's own part and R - 1 parts shared by every
+        # target (and sample): contracted with the shared parts in one product for all edges.
+        own_values = grouped(target_part)[2]                                     # (..., N, G, w)
+        shared_values = grouped(edge_basis)[2]                                   # (R - 1, G, w)
+        own_weights = jnp.swapaxes(mixed_coefficients[..., 0], -1, -2)[..., None]  # (..., N, L, G, 1)
+        hidden = (jnp.einsum("...iglm,...mgc->...ilgc", group_weights, pv)
+                  + own_weights * own_values[..., None, :, :]
+                  + jnp.einsum("...gls,sgc->...lgc", mixed_coefficients[..., 1:], shared_values))
         hidden = hidden.reshape(hidden.shape[:-2] + (width,))                    # (..., N, L, W)
 
         within = jnp.arange(width) % head_dim

@@ -1,0 +1,77 @@
+"""A model on another time grid: CrowdNav++'s 0.25 s, 5 observed and 5 predicted steps, with
+its architecture, through the same commands as the paper's model, on simulated crowds."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gst_jax import evaluate, plot, train
+from gst_jax.predict.__main__ import main as predict_main
+from gst_jax.config import DataConfig, TimeGrid
+from gst_jax.data import load_split
+from gst_jax.simulate.crowds import CrowdConfig, crowd_rows, simulate_crowd
+
+CROWDNAV = ["--fps", "4", "--step", "0.25", "--obs-len", "5", "--pred-len", "5",
+            "--edge-heads", "0", "--no-ghost", "--node-dim", "16", "--encoder-layers", "1",
+            "--lstm-dim", "16", "--temporal", "faster_lstm", "--output", "gaussian"]
+
+
+@pytest.fixture(scope="module")
+def crowds(tmp_path_factory) -> Path:
+    """Two short simulated episodes at 0.25 s, as experiments/make_sim_crowds.py writes them."""
+    folder = tmp_path_factory.mktemp("sim_crowds")
+    config = CrowdConfig(num_humans=8, duration_s=12.0)
+    for episode in range(2):
+        positions, detected = simulate_crowd(config, seed=episode)
+        (folder / f"episode_{episode}.txt").write_text("\n".join(crowd_rows(positions,
+                                                                             detected)))
+    return folder
+
+
+def test_simulated_crowds_keep_their_distance_and_leave_view():
+    positions, detected = simulate_crowd(CrowdConfig(duration_s=20.0), seed=0)
+    assert positions.shape == (81, 20, 2) and np.isfinite(positions).all()
+    gaps = np.linalg.norm(positions[:, :, None] - positions[:, None], axis=-1)
+    gaps[:, np.arange(20), np.arange(20)] = np.inf
+    assert gaps.min() > 0.2                          # they avoid one another (discs of 0.3 m)
+    speed = np.linalg.norm(np.diff(positions, axis=0), axis=-1) / 0.25
+    assert 0.5 < speed.mean() < 1.5
+    assert 0.3 < detected.mean() < 0.95              # humans enter and leave the sensor's range
+
+
+def test_a_0_25s_model_trains_evaluates_predicts_and_plots_through_the_commands(
+        crowds, tmp_path, capsys):
+    run = tmp_path / "run"
+    train.main(["--data", str(crowds), *CROWDNAV, "--epochs", "1", "--batch-size", "8",
+                "--max-train-windows", "16", "--workdir", str(run)])
+    config = json.loads((run / "config.json").read_text())
+    assert (config["model"]["step_s"], config["model"]["obs_len"]) == (0.25, 5)
+    capsys.readouterr()
+    evaluate.main([str(run), "--samples", "3", "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert result["pedestrians"] > 0 and np.isfinite(result["aoe"])
+    assert "cv_aoe" in result
+
+    out = tmp_path / "predictions.ndjson"
+    predict_main([str(run), "--samples", "2", "--out", str(out)])
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert {row["scene"]["fps"] for row in rows if "scene" in row} == {4.0}
+    # Each window's 5 observed and 5 predicted steps are one frame (0.25 s at 4 fps) apart.
+    scene = next(row["scene"] for row in rows if "scene" in row)
+    assert scene["e"] - scene["s"] == 9
+
+    plot.main(["scene", str(run), "--samples", "2", "--out", str(tmp_path / "scene.png")])
+    assert (tmp_path / "scene.png").stat().st_size > 10_000
+
+
+def test_its_windows_follow_the_model_s_grid_and_bundled_scenes_refuse_it(crowds, capsys):
+    grid = TimeGrid(step_s=0.25, obs_len=5, pred_len=5)
+    windows = load_split(DataConfig(scene="sim", data=str(crowds), fps=4), "train", grid)
+    assert windows[0].positions.shape[0] == 10
+    with pytest.raises(SystemExit, match="annotated at 2.5 Hz .* not a multiple of the "
+                                         "model's 4 Hz"):
+        train.main(["--scene", "zara1", *CROWDNAV[2:], "--epochs", "1"])
