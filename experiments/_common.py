@@ -17,6 +17,11 @@ from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_run
 from gst_jax.training.loop import fit
 
+# Where unfinished runs are parked (their newest checkpoint, committed so that another sitting
+# continues them): one commit per sitting replaces the previous park; results/ holds only
+# finished records.
+PARKED = Path("parked")
+
 
 def train(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
           workdir: Path) -> None:

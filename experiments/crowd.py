@@ -8,7 +8,7 @@
 The run is `python -m gst_jax.train --scene crowd --protocol paper --output O --epochs E
 --seed s` (n = 1, ghost): its train split is the union of the paper train splits of the five
 ETH/UCY scenes, LCAS and WILDTRACK. `--train` runs or resumes it as `experiments/table1.py`
-does (same parking in <results>/resume/), then evaluates it on every scene's test split, as
+does (same parking in parked/), then evaluates it on every scene's test split, as
 `python -m gst_jax.evaluate RUN --scene S` does. Writes <results>/crowd[_p].md and .json: per scene,
 the general model beside that scene's own Table I model (its record in <results>/runs/, seed
 1000) and constant velocity; the run's record <results>/runs/<run name>.json keeps the
@@ -22,7 +22,7 @@ import json
 import sys
 from pathlib import Path
 
-from _common import evaluate, park
+from _common import PARKED, evaluate, park
 from table1 import run_scene_seed, train_flags, workdir_of
 
 from gst_jax import pretrained
@@ -47,11 +47,11 @@ def per_scene_metrics(workdir: Path, epochs: int, evaluate_missing: bool) -> dic
 
 
 def crowd_record(runs: Path, records: Path, output: str, epochs: int, seed: int, train: bool,
-                 checkpoint_every: int) -> dict | None:
+                 checkpoint_every: int, parked_runs: Path) -> dict | None:
     """The general run's record (its union test metrics, see table1.run_scene_seed) with
     "per_scene": its test metrics on every scene evaluated so far."""
     record = run_scene_seed(runs, records, CROWD, "paper", output, epochs, seed, train,
-                            checkpoint_every)
+                            checkpoint_every, parked_runs)
     if record is None:
         return None
     workdir = workdir_of(runs, CROWD, "paper", output, epochs, seed)
@@ -124,7 +124,9 @@ def main(argv: list[str] | None = None) -> None:
                         help="epochs between checkpoints when training (default: 5)")
     parser.add_argument("--park", action="store_true",
                         help="copy the unfinished run's newest checkpoint into "
-                             "<workdir>/resume/ (commit it to continue in another sitting)")
+                             "--parked (commit it to continue in another sitting)")
+    parser.add_argument("--parked", type=Path, default=PARKED,
+                        help=f"folder of parked runs (default: {PARKED})")
     parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
     parser.add_argument("--workdir", default="results",
                         help="where crowd[_p].md/.json and the run's record runs/*.json are "
@@ -135,12 +137,12 @@ def main(argv: list[str] | None = None) -> None:
     records = out / "runs"
     workdir = workdir_of(runs, CROWD, "paper", args.output, args.epochs, args.seed)
     if args.park:
-        if epoch := park(workdir, out / "resume" / workdir.name):
+        if epoch := park(workdir, args.parked / workdir.name):
             print(f"parked {workdir.name} after epoch {epoch}", file=sys.stderr)
         return
 
     record = crowd_record(runs, records, args.output, args.epochs, args.seed, args.train,
-                          args.checkpoint_every)
+                          args.checkpoint_every, args.parked)
     table = rows(record, runs, records, args.output, args.epochs)
     command = " ".join(["python -m gst_jax.train",
                         *train_flags(CROWD, "paper", args.output, args.epochs, args.seed)])

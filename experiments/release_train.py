@@ -4,7 +4,7 @@ Run it with the release's Python (a venv with torch; `benchmarks/release.py` say
 a copy of the release), from anywhere:
 
     OMP_NUM_THREADS=1 RELEASE_PY experiments/release_train.py --release-dir DIR \
-        --flush-denormal --keep results/resume/release-zara2-p-seed1000 \
+        --flush-denormal --keep parked/release-zara2-p-seed1000 \
         -- --dataset zara2 <the other flags of run/train_sparse.sh>
 
 Everything after `--` goes to the release's argument parser as in its `run/train_sparse.sh`
@@ -16,7 +16,7 @@ torch and numpy reseeded with seed + N (the release saves no RNG state, so a res
 different draw of the same training, not a replay). `--keep DIR` copies every new checkpoint
 there (only the newest is kept) and restores from it when the release's own folder is gone, so
 a training can outlive the machine it started on. `--flush-denormal`: see its help and
-`benchmarks/README.md`. Nothing of the release is copied here: its module is imported and the
+`docs/benchmarks.md`. Nothing of the release is copied here: its module is imported and the
 names it looks up for the model, the two schedules, saving, the result-folder check and the
 epoch loop's range are wrapped.
 """

@@ -14,7 +14,7 @@ the epoch an unfinished run has reached), never filled in. Writes
 <results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
 
 A run longer than one sitting (univ on two CPU cores) continues in the next one: `--park`
-copies the newest checkpoint of every unfinished run into <results>/resume/<run name>/, to be
+copies the newest checkpoint of every unfinished run into <parked>/<run name>/, to be
 committed; `--train` on a machine without the work directory starts from that copy, and the
 copy is deleted once the run's evaluation is recorded.
 """
@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from _common import evaluate, latest_checkpoint, park, train
+from _common import PARKED, evaluate, latest_checkpoint, park, train
 from _figures import table1_against_paper
 
 from gst_jax import data, pretrained
@@ -76,13 +76,14 @@ def shipped_record(scene: str, protocol: str, output: str, epochs: int,
 
 def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output: str,
                    epochs: int, seed: int, train_missing: bool,
-                   checkpoint_every: int = TrainConfig.checkpoint_every) -> dict | None:
+                   checkpoint_every: int = TrainConfig.checkpoint_every,
+                   parked_runs: Path = PARKED) -> dict | None:
     """Evaluation and training time of one run: its work directory's final evaluation (kept as
     a record in `records`), else that record, else the record of the shipped model trained by
     the same command, else (if `train_missing`) a new run."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
     record_path = records / f"{workdir.name}.json"
-    parked = records.parent / "resume" / workdir.name
+    parked = parked_runs / workdir.name
     data_config = DataConfig(scene=scene, protocol=protocol)
     if (result := WorkDir(workdir).read_evaluation(data_config, "test", epochs)) is not None:
         record = {**result, "seed": seed, "workdir": str(workdir),
@@ -104,16 +105,15 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
           TrainConfig(epochs=epochs, seed=seed, checkpoint_every=checkpoint_every), workdir)
     evaluate(workdir)
     return run_scene_seed(runs, records, scene, protocol, output, epochs, seed,
-                          train_missing=False)
+                          train_missing=False, parked_runs=parked_runs)
 
 
-def trained_epochs(runs: Path, records: Path, scene: str, protocol: str, output: str,
+def trained_epochs(runs: Path, parked_runs: Path, scene: str, protocol: str, output: str,
                    epochs: int, seed: int) -> int | None:
     """How far an unfinished run has got: the newest checkpoint of its work directory or of
     its parked copy (None: not started)."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
-    found = [latest_checkpoint(path) for path in (workdir, records.parent / "resume"
-                                                  / workdir.name)]
+    found = [latest_checkpoint(path) for path in (workdir, parked_runs / workdir.name)]
     return max((epoch for epoch in found if epoch is not None), default=None)
 
 
@@ -203,7 +203,7 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
     if trained_by:
         lines += ["", "Code that trained each run (git commit; 'before': trained before commits "
                   "were recorded, i.e. before the release-faithful encoder initialisation and "
-                  "attention dropout of commits f5608ec and d394412, results/NOTES.md): "
+                  "attention dropout of commits f5608ec and d394412, docs/reproducing.md): "
                   + "; ".join(trained_by) + "."]
     for r in rows:
         for seed, run in r.get("per_seed", {}).items():
@@ -233,8 +233,10 @@ def main(argv: list[str] | None = None) -> None:
                         help="epochs between checkpoints of the runs --train starts or resumes "
                              "(default: 5)")
     parser.add_argument("--park", action="store_true",
-                        help="copy the newest checkpoint of each unfinished run into "
-                             "<workdir>/resume/ (commit it to continue in another sitting)")
+                        help="copy the newest checkpoint of each unfinished run into --parked "
+                             "(commit it to continue in another sitting)")
+    parser.add_argument("--parked", type=Path, default=PARKED,
+                        help=f"folder of parked runs (default: {PARKED})")
     parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
     parser.add_argument("--workdir", default="results",
                         help="where table1[_loo][_p].md/.json and the per-run records runs/*.json "
@@ -249,7 +251,7 @@ def main(argv: list[str] | None = None) -> None:
                 workdir = workdir_of(Path(args.runs), scene, args.protocol, args.output,
                                      args.epochs, seed)
                 if not (records / f"{workdir.name}.json").exists() and (
-                        epoch := park(workdir, records.parent / "resume" / workdir.name)):
+                        epoch := park(workdir, args.parked / workdir.name)):
                     print(f"parked {workdir.name} after epoch {epoch}", file=sys.stderr)
         return
 
@@ -257,14 +259,14 @@ def main(argv: list[str] | None = None) -> None:
     for scene in args.scenes:
         per_seed = [r for seed in seeds if (r := run_scene_seed(
             Path(args.runs), records, scene, args.protocol, args.output, args.epochs, seed,
-            args.train, args.checkpoint_every))]
+            args.train, args.checkpoint_every, args.parked))]
         seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
         command = " ".join(["python -m gst_jax.train", *train_flags(
             scene, args.protocol, args.output, args.epochs, seed_shown)])
         baseline = constant_velocity_baseline(
             data.load_split(DataConfig(scene=scene, protocol=args.protocol), "test"))
         in_progress = {} if per_seed else {seed: epoch for seed in seeds if (
-            epoch := trained_epochs(Path(args.runs), records, scene, args.protocol, args.output,
+            epoch := trained_epochs(Path(args.runs), args.parked, scene, args.protocol, args.output,
                                     args.epochs, seed)) is not None}
         rows.append(summarize(scene, args.output, per_seed, command, baseline, in_progress))
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (

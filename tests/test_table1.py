@@ -16,6 +16,11 @@ from gst_jax.io.checkpoints import Checkpointer
 from gst_jax.io.workdir import WorkDir
 
 
+def _isolated(tmp_path: Path) -> list[str]:
+    """The flag that keeps a test's parked runs in its own folder (not the checkout's)."""
+    return ["--parked", str(tmp_path / "parked")]
+
+
 def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[float],
               output: str = "deterministic") -> None:
     workdir = table1.workdir_of(runs, scene, "paper", output, 200, seed)
@@ -34,8 +39,8 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
     monkeypatch.setattr(pretrained, "available", lambda: ["eth_d"])    # the only one shipped
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
     _fake_run(tmp_path / "runs", "hotel", 1001, 0.30, [60.0])
-    table1.main(["--scenes", "hotel", "eth", "univ", "--seeds", "1000,1001", "--runs",
-                    str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")])
+    table1.main([*_isolated(tmp_path), "--scenes", "hotel", "eth", "univ", "--seeds",
+                 "1000,1001", "--runs", str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")])
     hotel, eth, univ = json.loads((tmp_path / "out" / "table1.json").read_text())
 
     assert hotel["seeds"] == [1000, 1001] and hotel["spread_over"] == "seeds"
@@ -64,7 +69,7 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
 def test_finished_runs_are_kept_as_records_that_outlive_their_work_directories(tmp_path):
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0, 30.0])
     argv = ["--scenes", "hotel", "--seeds", "1000", "--runs", str(tmp_path / "runs"),
-            "--workdir", str(tmp_path / "out")]
+            "--workdir", str(tmp_path / "out"), "--parked", str(tmp_path / "parked")]
     table1.main(argv)
     first = (tmp_path / "out" / "table1.json").read_text()
     record = json.loads((tmp_path / "out" / "runs" / "hotel-paper-d-n1-e200-seed1000.json")
@@ -80,8 +85,8 @@ def test_finished_runs_are_kept_as_records_that_outlive_their_work_directories(t
 def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
     for k, scene in enumerate(("eth", "hotel", "univ", "zara1", "zara2")):
         _fake_run(tmp_path / "runs", scene, 1000, 0.1 * (k + 1), [60.0], output="gaussian")
-    table1.main(["--output", "gaussian", "--runs", str(tmp_path / "runs"), "--workdir",
-                    str(tmp_path / "out")])
+    table1.main([*_isolated(tmp_path), "--output", "gaussian", "--runs", str(tmp_path / "runs"),
+                 "--workdir", str(tmp_path / "out")])
     table = (tmp_path / "out" / "table1_p.md").read_text()
     assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 0.050 / 0.100 | 1.10 | 2.22 | -0.10 | 0.97 / 2.12 |" in table
     assert "| AVG | 0.300 | 0.600 | | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.51 / 1.10 | | | |" in table
@@ -89,8 +94,8 @@ def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
 
 def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_average_of_ours(
         tmp_path):
-    table1.main(["--protocol", "loo", "--runs", str(tmp_path / "runs"), "--workdir",
-                    str(tmp_path / "out")])
+    table1.main([*_isolated(tmp_path), "--protocol", "loo", "--runs", str(tmp_path / "runs"),
+                 "--workdir", str(tmp_path / "out")])
     rows = json.loads((tmp_path / "out" / "table1_loo.json").read_text())
     assert [r["scene"] for r in rows] == ["eth", "hotel", "univ", "zara1", "zara2"]
     assert all("aoe" not in r and r["cv_aoe"] > 0 and r["pedestrians"] > 0 for r in rows)
@@ -125,13 +130,13 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
     first_epoch = WorkDir(tmp_path / "first").read_metrics()
     # (a seed no shipped model has, so that the row cannot fall back to one)
     name = table1.workdir_of(Path("runs"), "zara1", "paper", "deterministic", 200, 1003).name
-    parked = tmp_path / "results" / "resume" / name
+    parked = tmp_path / "parked" / name
     assert _common.park(tmp_path / "first", parked) == 1
     assert sorted(p.name for p in (parked / "checkpoints").iterdir()) == ["1", "checksums.json"]
 
     # Until it finishes, the table shows how far it got, and still no figure.
     table1.main(["--scenes", "zara1", "--seeds", "1003", "--runs", str(tmp_path / "runs"),
-                    "--workdir", str(tmp_path / "results")])
+                  "--workdir", str(tmp_path / "results"), "--parked", str(tmp_path / "parked")])
     [row] = json.loads((tmp_path / "results" / "table1.json").read_text())
     assert row["in_progress"] == {"1003": 1} and "aoe" not in row
     assert "| zara1 | missing (seed 1003 at epoch 1 of 200) | missing |" in (
@@ -145,10 +150,10 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
 
     # Once the run's evaluation is recorded, its parked copy is deleted.
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0])
-    parked = tmp_path / "results" / "resume" / "hotel-paper-d-n1-e200-seed1000"
+    parked = tmp_path / "parked" / "hotel-paper-d-n1-e200-seed1000"
     parked.mkdir(parents=True)
     table1.main(["--scenes", "hotel", "--runs", str(tmp_path / "runs"), "--workdir",
-                    str(tmp_path / "results")])
+                 str(tmp_path / "results"), "--parked", str(tmp_path / "parked")])
     assert not parked.exists()
 
 
@@ -162,7 +167,8 @@ def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_i
                 {"aoe": 0.1 * (k + 1), "foe": 0.2 * (k + 1), "pedestrians": k + 1,
                  "cv_aoe": 0.5, "cv_foe": 1.0}))
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.25, [60.0])         # hotel's own model
-    argv = ["--runs", str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")]
+    argv = ["--runs", str(tmp_path / "runs"), "--workdir", str(tmp_path / "out"),
+            "--parked", str(tmp_path / "parked")]
     crowd.main(argv)
     table = (tmp_path / "out" / "crowd.md").read_text()
     assert "| hotel | 2 | 0.200 / 0.400 | 0.250 / 0.500 | 0.500 / 1.000 |" in table
@@ -178,7 +184,7 @@ def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_i
         (workdir / "eval" / f"{data_config.scene}-paper-test-e200.json").write_text(json.dumps(
             {"aoe": 0.9, "foe": 1.8, "pedestrians": 9, "cv_aoe": 0.5, "cv_foe": 1.0}))
     monkeypatch.setattr(crowd, "evaluate", evaluate)
-    crowd.main([*argv, "--train"])
+    crowd.main([*_isolated(tmp_path), *argv, "--train"])
     assert evaluated == [(workdir, "wildtrack")]
     table = (tmp_path / "out" / "crowd.md").read_text()
     assert "| wildtrack | 9 | 0.900 / 1.800 | - | 0.500 / 1.000 |" in table
