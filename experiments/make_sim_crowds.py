@@ -8,7 +8,8 @@ planner's predictor on them:
 
 Episode k is seeded with k: the files are the same on every machine. Frame ids count the
 simulator's steps (4 per second at 0.25 s); each file is split in time as the paper splits a
-scene (80 % train, 20 % test).
+scene (80 % train, 20 % test). The bundled sample `data/samples/sim_crowds/` is episode 40,
+one the 40 above do not hold (`--first 40 --episodes 1`).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True, help="folder of the files")
     parser.add_argument("--episodes", type=int, default=40, help="files (default: 40)")
+    parser.add_argument("--first", type=int, default=0, help="the first episode (default: 0)")
     parser.add_argument("--duration", type=float, default=CrowdConfig.duration_s,
                         help=f"seconds per episode (default: {CrowdConfig.duration_s:g})")
     parser.add_argument("--step", type=float, default=CrowdConfig.step_s,
@@ -30,7 +32,7 @@ def main() -> None:
     args = parser.parse_args()
     config = CrowdConfig(duration_s=args.duration, step_s=args.step)
     args.out.mkdir(parents=True, exist_ok=True)
-    for episode in range(args.episodes):
+    for episode in range(args.first, args.first + args.episodes):
         positions, detected = simulate_crowd(config, seed=episode)
         path = args.out / f"episode_{episode:03d}.txt"
         path.write_text("\n".join(crowd_rows(positions, detected)) + "\n")

@@ -11,8 +11,7 @@ from __future__ import annotations
 import json
 
 from gst_jax import pretrained
-from gst_jax.config import DataConfig
-from gst_jax.pretrained.export import CHECK, check_aoe
+from gst_jax.pretrained.export import check_aoe, check_data_config
 
 
 def recheck(name: str) -> tuple[float, float]:
@@ -20,8 +19,7 @@ def recheck(name: str) -> tuple[float, float]:
     meta = pretrained.load_meta(name)
     config, params = pretrained.load_pretrained(name)
     old = meta["check"]["aoe"]
-    data_config = DataConfig.from_dict(meta["data"])
-    meta["check"] = {**CHECK, "aoe": check_aoe(config, params, data_config)}
+    meta["check"]["aoe"] = check_aoe(config, params, check_data_config(meta))
     (pretrained.folder(name) / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     return old, meta["check"]["aoe"]
 

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Callable
 from gst_jax.config import (DETECTION, EDGE_HEAD_CHOICES, PROTOCOLS, SCENES, SCHEDULES,
                             TEMPORAL_MODELS, DataConfig, ModelConfig, TimeGrid, TrainConfig)
 from gst_jax.data import data_name
+from gst_jax.data.protocols import bundled_or_local
 from gst_jax.errors import USER_ERRORS, DataError
 
 if TYPE_CHECKING:
@@ -309,7 +310,9 @@ def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> Dat
         data_dir=str(Path(args.data_dir).absolute()) if args.data_dir else base.data_dir,
         drop_off_grid=args.drop_off_grid or base.drop_off_grid)
     if args.data:
-        pattern = str(Path(args.data).absolute())
+        # Stored absolute, but a path into the bundled data stays relative (found anywhere).
+        pattern = args.data if bundled_or_local(args.data) != Path(args.data) else str(
+            Path(args.data).absolute())
         config = dataclasses.replace(config, scene=data_name(pattern), data=pattern,
                                      fps=args.fps, scale=UNITS[args.units])
     elif args.fps or args.units != "m":

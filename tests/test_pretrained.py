@@ -11,7 +11,7 @@ from gst_jax.config import CROWD_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.errors import RunError
 from gst_jax.io.workdir import WorkDir
 from gst_jax.pretrained import export
-from gst_jax.pretrained.export import check_aoe
+from gst_jax.pretrained.export import check_aoe, check_data_config
 from gst_jax.training.loop import fit
 
 
@@ -23,7 +23,7 @@ def test_at_least_one_model_is_shipped():
 def test_pretrained_model_reproduces_its_recorded_aoe(name):
     meta = pretrained.load_meta(name)
     config, params = load_pretrained(name)
-    aoe = check_aoe(config, params, DataConfig.from_dict(meta["data"]))
+    aoe = check_aoe(config, params, check_data_config(meta))
     assert abs(aoe - meta["check"]["aoe"]) < 1e-3
 
 

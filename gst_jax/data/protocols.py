@@ -29,8 +29,11 @@ TRAJNET_FILES = {scene: f"{scene}.ndjson" for scene in TRAJNET_SCENES}
 
 
 def default_data_dir() -> Path:
-    """The bundled `data/` folder of the repository this package was installed from."""
-    return Path(__file__).resolve().parents[2] / "data"
+    """The bundled datasets (--data-dir names another folder): the copy inside an installed
+    package (gst_jax/datasets, the repository's data/), or, in a checkout or an editable
+    install, the repository's data/ itself."""
+    installed = Path(__file__).resolve().parents[1] / "datasets"
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "data"
 
 
 def scene_files(data_dir: Path, scene: str) -> list[Path]:
@@ -46,8 +49,10 @@ def scene_files(data_dir: Path, scene: str) -> list[Path]:
 
 
 def data_files(pattern: str) -> list[Path]:
-    """Your own files: one file, every .txt / .ndjson in a folder, or a glob's matches."""
-    path = Path(pattern)
+    """Your own files: one file, every .txt / .ndjson in a folder, or a glob's matches. A
+    relative path that names nothing here but a file or folder of the bundled data is that
+    (e.g. samples/crowd_10hz.txt, from any folder)."""
+    path = bundled_or_local(pattern)
     if path.is_file():
         return [path]
     found = path.iterdir() if path.is_dir() else map(Path, glob.glob(pattern))
@@ -57,9 +62,17 @@ def data_files(pattern: str) -> list[Path]:
     return files
 
 
+def bundled_or_local(pattern: str) -> Path:
+    """`pattern` as a path: itself, unless it is relative, does not exist, and names a file
+    or folder of the bundled data."""
+    path = Path(pattern)
+    bundled = default_data_dir() / pattern
+    return bundled if not path.is_absolute() and not path.exists() and bundled.exists() else path
+
+
 def data_name(pattern: str) -> str:
     """The name that runs and labels give your own data: the file's or the folder's."""
-    path = Path(pattern)
+    path = bundled_or_local(pattern)
     if path.is_file():
         return path.stem
     return path.name if path.is_dir() else path.parent.name

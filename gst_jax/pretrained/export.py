@@ -22,6 +22,11 @@ from gst_jax.runs import load_run
 CHECK = {"windows": 4, "samples": 2, "seed": 0}
 
 
+def check_data_config(meta: dict) -> DataConfig:
+    """The data of a shipped model's fixed-key check: its own, or the bundled data it names."""
+    return DataConfig.from_dict(meta["check"].get("data", meta["data"]))
+
+
 def check_aoe(config: ModelConfig, params, data_config: DataConfig) -> float:
     """AOE of the fixed-key check (CHECK) on the first windows of the test split."""
     test_set = data.load_split(data_config, "test", config.grid)
@@ -31,8 +36,10 @@ def check_aoe(config: ModelConfig, params, data_config: DataConfig) -> float:
                            with_baseline=False)["aoe"]
 
 
-def export(run_path: str | Path, name: str) -> Path:
-    """Copy a trained run's latest parameters and its evaluation into the package."""
+def export(run_path: str | Path, name: str, check_data: DataConfig | None = None) -> Path:
+    """Copy a trained run's latest parameters and its evaluation into the package. The
+    fixed-key check runs on the run's own data, or on `check_data` where that is not bundled
+    (a relative path into the bundled data, so that it is found on any machine)."""
     run = load_run(run_path)
     metrics = run.workdir.read_evaluation(run.data_config, "test", run.epoch)
     per_scene = {}
@@ -53,6 +60,9 @@ def export(run_path: str | Path, name: str) -> Path:
             "epoch": run.epoch, "source": str(run.workdir.path), "test_metrics": metrics,
             **({"test_metrics_per_scene": per_scene} if per_scene else {}),
             "train_time_s": run.workdir.training_time_s(), "code": run.workdir.code_versions(),
-            "check": {**CHECK, "aoe": check_aoe(run.model_config, run.params, run.data_config)}}
+            "check": {**CHECK, "aoe": check_aoe(run.model_config, run.params,
+                                                check_data or run.data_config)}}
+    if check_data is not None:
+        meta["check"]["data"] = dataclasses.asdict(check_data)
     (folder / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
     return folder
