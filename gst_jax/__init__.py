@@ -26,7 +26,10 @@ _PUBLIC = {
     "init_params": "gst_jax.model", "load_pretrained": "gst_jax.pretrained",
     "make_batch": "gst_jax.data", "make_predict": "gst_jax.predict",
 }
-__all__ = sorted(_PUBLIC)
+# The public names, and the modules of the API reference (`pdoc gst_jax`).
+__all__ = sorted(_PUBLIC) + ["config", "crowdnav", "data", "errors", "evaluation", "interop",
+                             "metrics", "model", "predict", "pretrained", "runs", "simulate",
+                             "training"]
 
 
 def __getattr__(name: str):

@@ -1,12 +1,10 @@
 """Evaluate a trained model with the paper's protocol: `python -m gst_jax.evaluate MODEL`.
 
 MODEL is a work directory (or one of its checkpoints), SWEEP_DIR:MEMBER or pretrained:NAME.
-K = 20 hard-sampled predictions of every window of the split are the paper's 20 runs; AOE
-and FOE are the mean over runs with their spread, on fully detected pedestrians, beside
-best-of-K, KDE NLL, collision rates (TrajNet++'s Col-I / Col-II among them) and constant
-velocity on the same pedestrians. The result goes to
-<workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json and .md. `--predictions FILE`
-scores a TrajNet++ prediction file (`python -m gst_jax.predict`, or another model's) instead.
+K = 20 hard-sampled predictions of every window are the paper's 20 runs: AOE and FOE (mean
+over runs, with their spread) on fully detected pedestrians beside best-of-K, KDE NLL,
+collisions, TrajNet++'s Col-I / Col-II and constant velocity on the same pedestrians, written
+to <workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json and .md.
 """
 
 from __future__ import annotations
@@ -28,10 +26,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("model", nargs="?", help="a work directory of `python -m gst_jax.train` "
                         "(or one of its checkpoints/<epoch>), SWEEP_DIR:MEMBER, or pretrained:NAME")
     parser.add_argument("--predictions", metavar="FILE", help="instead of a model, score this "
-                        "TrajNet++ prediction file (ours or another model's) on --data/--scene")
+                        "TrajNet++ prediction file on --data or --scene")
     cli.add_data_flags(parser, of_run=True)
     cli.add_sampling_flags(parser)
     parser.add_argument("--no-kde", action="store_true", help="skip the KDE NLL")
+    parser.add_argument("--max-windows", type=cli.count, default=0, help="the split's first k "
+                        "windows only, a quick look, printed not written (default: all)")
     parser.add_argument("--markdown", default=None, help="also write a markdown table here")
     cli.add_device_flags(parser)
     cli.add_output_flags(parser, workdir_help="where eval/ is written (default: the model's "
@@ -42,20 +42,21 @@ def main(argv: list[str] | None = None) -> None:
 def evaluate(args) -> None:
     if (args.model is None) == (args.predictions is None):
         raise RunError("give either a MODEL or --predictions FILE")
-    if args.predictions:
+    if args.predictions:                          # another model's file, or ours
         data_config, out = cli.data_config(args), None
         result = evaluate_prediction_file(Path(args.predictions), data_config, args.split,
                                           with_kde=not args.no_kde)
     else:
         devices = cli.devices(args)             # first: processes join before jax is used
         run = load_model(args.model, args.epoch)
-        out = WorkDir(args.workdir) if args.workdir else run.workdir
+        # A quick look (--max-windows) is printed, not kept.
+        out = None if args.max_windows else WorkDir(args.workdir) if args.workdir else run.workdir
         if out is not None:
             out.check_writable()
         data_config = cli.data_config(args, base=run.data_config)
         result = evaluate_run(run, data_config, args.split, num_samples=args.samples,
-                              seed=args.seed, with_kde=not args.no_kde, progress=Progress(),
-                              devices=devices)
+                              seed=args.seed, with_kde=not args.no_kde,
+                              max_windows=args.max_windows, progress=Progress(), devices=devices)
     print(json.dumps(result, indent=2) if args.json else format_table(result), flush=True)
     markdown = format_markdown(result)
     if args.markdown:

@@ -180,11 +180,16 @@ def _split_windows(data_config: DataConfig, split: str, grid: TimeGrid) -> data.
 
 
 def evaluate_run(run, data_config: DataConfig, split: str, *, num_samples: int = 20,
-                 seed: int = 0, with_kde: bool = True, progress: Progress | None = None,
+                 seed: int = 0, with_kde: bool = True, max_windows: int = 0,
+                 progress: Progress | None = None,
                  devices: Devices | None = None) -> dict[str, Any]:
-    """Evaluate a loaded model (`gst_jax.runs.Run`) on one split: the metrics of
-    `evaluate_params` plus what was evaluated (scene, split, windows, epoch, protocol line)."""
+    """Evaluate a loaded model (`gst_jax.runs.Run`) on one split (its first `max_windows`
+    windows where set, a quick look): the metrics of `evaluate_params` plus what was
+    evaluated (scene, split, windows, epoch, protocol line)."""
     window_set = _split_windows(data_config, split, run.model_config.grid)
+    if max_windows:
+        window_set = window_set.subset(range(min(max_windows, len(window_set))))
+        split = f"{split} (first {len(window_set)} windows)"
     result = evaluate_params(run.params, jax.random.key(seed), window_set, run.model_config,
                              num_samples=num_samples, with_kde=with_kde,
                              fully_detected_only=run.train_config.fully_detected_only,

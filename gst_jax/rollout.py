@@ -256,7 +256,7 @@ def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, windo
 
     # Rematerialised in the backward pass: storing each step's selector activations,
     # (N, L, 128) per step, costs more memory traffic than recomputing them (eth training
-    # step 9.0 -> 7.8 s per epoch on the 2-core CPU; benchmarks/README.md).
+    # step 9.0 -> 7.8 s per epoch on the 2-core CPU; docs/benchmarks.md).
     predict_step = jax.checkpoint(predict_step)
     carry = PredictionCarry(hidden, cell, delta, edge_features[-1, :slots, :slots], keys.steps)
     _, (deltas, mus, sigmas, corrs, probs, sampled, attention) = jax.lax.scan(
