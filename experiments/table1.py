@@ -47,28 +47,30 @@ PAPER = {
 
 
 def workdir_of(runs: Path, scene: str, protocol: str, output: str, epochs: int,
-               seed: int) -> Path:
+               seed: int, schedule: str = TrainConfig.schedule) -> Path:
     """The work directory `python -m gst_jax.train` picks for this run by default."""
-    return runs / run_name(DataConfig(scene=scene, protocol=protocol),
-                           ModelConfig(output=output), TrainConfig(epochs=epochs, seed=seed))
+    return runs / run_name(DataConfig(scene=scene, protocol=protocol), ModelConfig(output=output),
+                           TrainConfig(epochs=epochs, seed=seed, schedule=schedule))
 
 
 def train_flags(scene: str, protocol: str, output: str, epochs: int,
-                seed: int | str) -> list[str]:
+                seed: int | str, schedule: str = TrainConfig.schedule) -> list[str]:
     """The flags of `python -m gst_jax.train` for one run of the table."""
-    return ["--scene", scene, "--protocol", protocol, "--output", output,
-            "--epochs", str(epochs), "--seed", str(seed)]
+    flags = ["--scene", scene, "--protocol", protocol, "--output", output,
+             "--epochs", str(epochs), "--seed", str(seed)]
+    return flags if schedule == TrainConfig.schedule else [*flags, "--schedule", schedule]
 
 
 def shipped_record(scene: str, protocol: str, output: str, epochs: int,
-                   seed: int) -> dict | None:
+                   seed: int, schedule: str = TrainConfig.schedule) -> dict | None:
     """The test metrics recorded with a shipped pretrained model of exactly this run."""
     name = f"{scene}_{head(output).letter}"                          # e.g. eth_d, eth_p
     if name not in pretrained.available():
         return None
     meta = pretrained.load_meta(name)
-    if ((meta["data"]["protocol"], meta["train"]["epochs"], meta["train"]["seed"])
-            != (protocol, epochs, seed) or meta["model"]["num_edge_heads"] != 1):
+    trained = (meta["data"]["protocol"], meta["train"]["epochs"], meta["train"]["seed"],
+               meta["train"].get("schedule", TrainConfig.schedule))
+    if trained != (protocol, epochs, seed, schedule) or meta["model"]["num_edge_heads"] != 1:
         return None
     return {**meta["test_metrics"], "workdir": f"gst_jax/pretrained/{name}",
             "train_time_s": meta.get("train_time_s"), "code": meta.get("code")}
@@ -77,11 +79,12 @@ def shipped_record(scene: str, protocol: str, output: str, epochs: int,
 def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output: str,
                    epochs: int, seed: int, train_missing: bool,
                    checkpoint_every: int = TrainConfig.checkpoint_every,
-                   parked_runs: Path = PARKED) -> dict | None:
+                   parked_runs: Path = PARKED,
+                   schedule: str = TrainConfig.schedule) -> dict | None:
     """Evaluation and training time of one run: its work directory's final evaluation (kept as
     a record in `records`), else that record, else the record of the shipped model trained by
     the same command, else (if `train_missing`) a new run."""
-    workdir = workdir_of(runs, scene, protocol, output, epochs, seed)
+    workdir = workdir_of(runs, scene, protocol, output, epochs, seed, schedule)
     record_path = records / f"{workdir.name}.json"
     parked = parked_runs / workdir.name
     data_config = DataConfig(scene=scene, protocol=protocol)
@@ -95,17 +98,17 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
         return record
     if record_path.exists():
         return json.loads(record_path.read_text())
-    if (record := shipped_record(scene, protocol, output, epochs, seed)) is not None:
+    if (record := shipped_record(scene, protocol, output, epochs, seed, schedule)) is not None:
         return {**record, "seed": seed}
     if not train_missing:
         return None
     if parked.is_dir() and not (workdir / "checkpoints").is_dir():
         shutil.copytree(parked, workdir)                # continue another sitting's run
-    train(ModelConfig(output=output), data_config,
-          TrainConfig(epochs=epochs, seed=seed, checkpoint_every=checkpoint_every), workdir)
+    train(ModelConfig(output=output), data_config, TrainConfig(
+        epochs=epochs, seed=seed, checkpoint_every=checkpoint_every, schedule=schedule), workdir)
     evaluate(workdir)
     return run_scene_seed(runs, records, scene, protocol, output, epochs, seed,
-                          train_missing=False, parked_runs=parked_runs)
+                          train_missing=False, parked_runs=parked_runs, schedule=schedule)
 
 
 def trained_epochs(runs: Path, parked_runs: Path, scene: str, protocol: str, output: str,
