@@ -1,5 +1,5 @@
-"""experiments/table1.py and crowd.py: rows from work directories and shipped models, spread
-over seeds; parked runs."""
+"""experiments/table1.py, crowd.py and schedules.py: rows from work directories and shipped
+models, spread over seeds; parked runs; a shorter schedule's verdict."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ from pathlib import Path
 import _common
 import crowd
 import pytest
+import schedules
 import table1
 
 from gst_jax.io.checkpoints import Checkpointer
@@ -22,15 +23,15 @@ def _isolated(tmp_path: Path) -> list[str]:
 
 
 def _fake_run(runs: Path, scene: str, seed: int, aoe: float, epoch_times: list[float],
-              output: str = "deterministic") -> None:
-    workdir = table1.workdir_of(runs, scene, "paper", output, 200, seed)
+              output: str = "deterministic", epochs: int = 200, schedule: str = "paper") -> None:
+    workdir = table1.workdir_of(runs, scene, "paper", output, epochs, seed, schedule)
     (workdir / "eval").mkdir(parents=True)
     (workdir / "metrics.jsonl").write_text("".join(
         json.dumps({"epoch": e + 1, "epoch_time_s": t}) + "\n" for e, t in enumerate(epoch_times)))
     result = {"aoe": aoe, "aoe_std": 0.01, "foe": 2 * aoe, "foe_std": 0.02, "cv_aoe": 0.5,
               "cv_foe": 1.0, "kde_nll": -aoe, "epoch": 200, "pedestrians": 7, "protocol": "fake",
               "release_aoe_std": aoe / 2, "release_foe_std": aoe}
-    (workdir / "eval" / f"{scene}-paper-test-e200.json").write_text(json.dumps(result))
+    (workdir / "eval" / f"{scene}-paper-test-e{epochs}.json").write_text(json.dumps(result))
 
 
 def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_path,
@@ -193,3 +194,39 @@ def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_i
         path.unlink() if path.is_file() else path.rmdir()
     crowd.main(argv)
     assert (tmp_path / "out" / "crowd.md").read_text() == table
+
+
+def test_a_shorter_schedule_is_accepted_only_where_every_scene_holds_with_three_seeds(tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    reference = {"aoe": 1.0, "aoe_spread": 0.05, "foe": 2.0, "foe_spread": 0.01, "seeds": [1000],
+                 "train_time_s": [600.0]}
+    (out / "table1.json").write_text(json.dumps(
+        [{"scene": scene, **reference} for scene in ("eth", "hotel")]))
+    # E = 50: eth 2 % worse (within 3 %); hotel's AOE 4 % worse (within its spread), FOE too.
+    for seed in (1000, 1001, 1002):
+        _fake_run(tmp_path / "runs", "eth", seed, 1.03 if seed > 1000 else 1.0, [30.0],
+                  epochs=50, schedule="compressed")
+        _fake_run(tmp_path / "runs", "hotel", seed, 1.04, [30.0], epochs=50, schedule="compressed")
+    # E = 100: both scenes better than 200 epochs, but hotel has one seed so far.
+    for seed in (1000, 1001, 1002):
+        _fake_run(tmp_path / "runs", "eth", seed, 0.9, [30.0], epochs=100, schedule="compressed")
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.9, [30.0], epochs=100, schedule="compressed")
+
+    argv = ["--scenes", "eth", "hotel", "--runs", str(tmp_path / "runs"), "--workdir", str(out)]
+    schedules.main([*argv, "--epochs", "50", "100"])
+    record = json.loads((out / "schedules.json").read_text())
+    assert record["verdicts"] == {"50": "rejected", "100": "open"}
+    eth, hotel = record["rows"]["50"]
+    assert eth["accepted"] and eth["aoe"] == pytest.approx(1.02)
+    assert eth["aoe_spread"] == pytest.approx(0.03 * 2 ** 0.5 / 3)
+    assert not hotel["accepted"] and hotel["foe_change_pct"] == pytest.approx(4.0)
+    table = (out / "schedules.md").read_text()
+    assert "| hotel | 100 | 1000 | 0.900 | 1.800 | -10.0 % / -10.0 % |" in table
+    assert (out / "schedules.png").stat().st_size > 10_000
+
+    for seed in (1001, 1002):                          # hotel's other seeds arrive
+        _fake_run(tmp_path / "runs", "hotel", seed, 0.95, [30.0], epochs=100,
+                  schedule="compressed")
+    schedules.main([*argv, "--epochs", "100"])
+    assert json.loads((out / "schedules.json").read_text())["verdicts"] == {"100": "accepted"}
