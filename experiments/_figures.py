@@ -27,7 +27,8 @@ def partial_vs_full_detection(all_results: Sequence[dict], path: Path) -> Path:
     ax.axhline(0, color="black", lw=0.8)
     ax.set_xticks([i + 0.4 - width / 2 for i in range(len(scenes))], scenes)
     ax.set_ylabel("AOE improvement,\npartial over full (%)")
-    ax.legend(fontsize=7, ncol=len(heads))
+    if heads:                          # none when a sweep trained one detection mode only
+        ax.legend(fontsize=7, ncol=len(heads))
     ax.grid(axis="y", alpha=0.3)
     return save(fig, path)
 

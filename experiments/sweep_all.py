@@ -5,8 +5,9 @@
 
 Each scene's sweep goes to <workdir>/<scene>/ (resumable, its own table and figure); the
 cross-dataset figures and one markdown summary go to <workdir>/. --epochs is the budget:
-tau anneals 0.5 -> 0.03 over it (the learning rate decays every 50 epochs, as in the
-release), so a short budget is a short training, not a truncated 200-epoch one.
+tau anneals 0.5 -> 0.03 over it, so a short budget is a short training, not a truncated
+200-epoch one; the learning rate decays every 50 epochs as in the release (`--schedule paper`)
+or every epochs/4 (`--schedule compressed`, results/schedules.md).
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from pathlib import Path
 from _figures import best_n_per_dataset, partial_vs_full_detection, sparse_gain_against_density
 
 from gst_jax import cli
-from gst_jax.config import CROWD_SCENES, DETECTION, DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import (CROWD_SCENES, DETECTION, SCHEDULES, DataConfig, ModelConfig,
+                            TrainConfig)
 from gst_jax.training.members import plan_members, sweep_model_config
 from gst_jax.training.sweep import fit_sweep, format_markdown
 
@@ -35,6 +37,9 @@ def main() -> None:
     parser.add_argument("--fully-detected-only", default="both", choices=tuple(DETECTION),
                         help="detection modes to compare (default: both)")
     parser.add_argument("--epochs", type=int, default=200, help="epochs per sweep (budget)")
+    parser.add_argument("--schedule", default=TrainConfig.schedule, choices=SCHEDULES,
+                        help="learning-rate decay: paper (every 50 epochs) or compressed "
+                             f"(every epochs/4) (default: {TrainConfig.schedule})")
     parser.add_argument("--eval-samples", type=int, default=20, help="K per member (default: 20)")
     parser.add_argument("--max-train-windows", type=int, default=0, help="smoke tests only")
     parser.add_argument("--max-eval-windows", type=int, default=0, help="smoke tests only")
@@ -45,7 +50,7 @@ def main() -> None:
     members = plan_members(args.edge_heads, args.fully_detected_only,
                            [args.seed + i for i in range(args.seeds)])
     config = sweep_model_config(ModelConfig(), members)
-    train_config = TrainConfig(epochs=args.epochs, seed=args.seed,
+    train_config = TrainConfig(epochs=args.epochs, seed=args.seed, schedule=args.schedule,
                                max_train_windows=args.max_train_windows)
     all_results = []
     for scene in args.scenes:
