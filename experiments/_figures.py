@@ -89,27 +89,27 @@ def table1_against_paper(rows: Sequence[dict], path: Path, title: str,
     return save(fig, path)
 
 
-def schedule_against_paper(rows_by_epochs: dict[int, Sequence[dict]], path: Path) -> Path:
+def schedule_against_paper(rows_by_candidate: dict[str, Sequence[dict]], path: Path) -> Path:
     """Grouped bars per scene, AOE and FOE: the change (%) of each shorter schedule's mean over
     seeds from the 200-epoch paper schedule (± its seed std), a tick at what is allowed.
 
-    rows_by_epochs: experiments/schedules.py's rows per schedule length E.
+    rows_by_candidate: experiments/schedules.py's rows per candidate ('compressed:100').
     """
     fig, axes = plt.subplots(1, 2, figsize=(8.6, 2.8), gridspec_kw=dict(wspace=0.4))
-    lengths = list(rows_by_epochs)
-    scenes = [row["scene"] for row in rows_by_epochs[lengths[0]]]
+    candidates = list(rows_by_candidate)
+    scenes = [row["scene"] for row in rows_by_candidate[candidates[0]]]
     x = np.arange(len(scenes))
-    width = 0.8 / len(lengths)
+    width = 0.8 / len(candidates)
     for ax, metric in zip(axes, ("aoe", "foe")):
-        for k, epochs in enumerate(lengths):
-            rows = rows_by_epochs[epochs]
+        for k, name in enumerate(candidates):
+            rows = rows_by_candidate[name]
             scale = [100 / row["reference"][metric] for row in rows]
-            ax.bar(x + (k - (len(lengths) - 1) / 2) * width,
+            ax.bar(x + (k - (len(candidates) - 1) / 2) * width,
                    [row.get(f"{metric}_change_pct", np.nan) for row in rows], width,
                    yerr=[row.get(f"{metric}_spread", 0.0) * s for row, s in zip(rows, scale)],
-                   capsize=2, label=f"E = {epochs}")
+                   capsize=2, label=name)
         allowed = [100 * (row[f"{metric}_allowed"] / row["reference"][metric] - 1)
-                   for row in rows_by_epochs[lengths[0]] if f"{metric}_allowed" in row]
+                   for row in rows_by_candidate[candidates[0]] if f"{metric}_allowed" in row]
         if len(allowed) == len(scenes):
             ax.scatter(x, allowed, marker="_", s=400, color="black", label="allowed", zorder=3)
         ax.axhline(0, color="black", lw=0.8)
@@ -117,6 +117,6 @@ def schedule_against_paper(rows_by_epochs: dict[int, Sequence[dict]], path: Path
         ax.set_ylabel(f"{metric.upper()} change from\n200 epochs (%)")
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(fontsize=7)
-    fig.suptitle("GST (D) n = 1, paper protocol: compressed schedule of E epochs against the "
-                 "paper's 200", fontsize=8)
+    fig.suptitle("GST (D) n = 1, paper protocol: shorter schedules against the paper's 200 "
+                 "epochs", fontsize=8)
     return save(fig, path)

@@ -214,19 +214,22 @@ def test_a_shorter_schedule_is_accepted_only_where_every_scene_holds_with_three_
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.9, [30.0], epochs=100, schedule="compressed")
 
     argv = ["--scenes", "eth", "hotel", "--runs", str(tmp_path / "runs"), "--workdir", str(out)]
-    schedules.main([*argv, "--epochs", "50", "100"])
+    schedules.main([*argv, "--candidates", "compressed:50", "compressed:100"])
     record = json.loads((out / "schedules.json").read_text())
-    assert record["verdicts"] == {"50": "rejected", "100": "open"}
-    eth, hotel = record["rows"]["50"]
+    assert record["verdicts"] == {"compressed:50": "rejected", "compressed:100": "open"}
+    eth, hotel = record["rows"]["compressed:50"]
     assert eth["accepted"] and eth["aoe"] == pytest.approx(1.02)
     assert eth["aoe_spread"] == pytest.approx(0.03 * 2 ** 0.5 / 3)
     assert not hotel["accepted"] and hotel["foe_change_pct"] == pytest.approx(4.0)
     table = (out / "schedules.md").read_text()
-    assert "| hotel | 100 | 1000 | 0.900 | 1.800 | -10.0 % / -10.0 % |" in table
+    assert "| hotel | compressed:100 | 1000 | 0.900 | 1.800 | -10.0 % / -10.0 % |" in table
     assert (out / "schedules.png").stat().st_size > 10_000
 
     for seed in (1001, 1002):                          # hotel's other seeds arrive
         _fake_run(tmp_path / "runs", "hotel", seed, 0.95, [30.0], epochs=100,
                   schedule="compressed")
-    schedules.main([*argv, "--epochs", "100"])
-    assert json.loads((out / "schedules.json").read_text())["verdicts"] == {"100": "accepted"}
+    schedules.main([*argv, "--candidates", "compressed:100"])
+    assert json.loads((out / "schedules.json").read_text())["verdicts"] == {
+        "compressed:100": "accepted"}
+    with pytest.raises(SystemExit):                    # a schedule that does not exist
+        schedules.main([*argv, "--candidates", "cosine:100"])
