@@ -8,6 +8,7 @@ Run the scripts as `python experiments/<script>.py`: their folder is then on the
 
 from __future__ import annotations
 
+import argparse
 import shutil
 from pathlib import Path
 
@@ -63,3 +64,12 @@ def park(workdir: Path, destination: Path) -> int | None:
     shutil.copy2(source / "checkpoints" / "checksums.json", destination / "checkpoints")
     shutil.copy2(source / "config.json", destination / "config.json")
     return epoch
+
+
+def add_results_flags(parser: argparse.ArgumentParser, written: str) -> None:
+    """--runs, --workdir and --json of the scripts that tabulate runs into results/;
+    `written`: what lands in --workdir, for its help."""
+    parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
+    parser.add_argument("--workdir", default="results",
+                        help=f"where {written} are written (default: results)")
+    parser.add_argument("--json", action="store_true", help="print the rows as JSON")

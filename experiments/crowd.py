@@ -22,7 +22,7 @@ import json
 import sys
 from pathlib import Path
 
-from _common import PARKED, evaluate, park
+from _common import PARKED, add_results_flags, evaluate, park
 from table1 import run_scene_seed, train_flags, workdir_of
 
 from gst_jax import pretrained
@@ -127,11 +127,7 @@ def main(argv: list[str] | None = None) -> None:
                              "--parked (commit it to continue in another sitting)")
     parser.add_argument("--parked", type=Path, default=PARKED,
                         help=f"folder of parked runs (default: {PARKED})")
-    parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
-    parser.add_argument("--workdir", default="results",
-                        help="where crowd[_p].md/.json and the run's record runs/*.json are "
-                             "written (default: results)")
-    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    add_results_flags(parser, "crowd[_p].md/.json and the run's record runs/*.json")
     args = parser.parse_args(argv)
     runs, out = Path(args.runs), Path(args.workdir)
     records = out / "runs"

@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from _common import add_results_flags
 from _figures import schedule_against_paper
 from table1 import run_scene_seed, train_flags
 
@@ -104,8 +105,9 @@ def markdown(rows_by_candidate: dict[str, list[dict]], verdicts: dict[str, str])
                 lines.append(f"| {row['scene']} | {candidate} | - | missing | | | {reference} "
                              f"| | | {minutes(ref['train_time_s'])} |")
                 continue
-            aoe, foe = (f"{row[m]:.3f}" + (f" ± {row[m + '_spread']:.3f}"
-                                           if len(row["seeds"]) > 1 else "") for m in ("aoe", "foe"))
+            several = len(row["seeds"]) > 1
+            aoe, foe = (f"{row[m]:.3f}" + (f" ± {row[m + '_spread']:.3f}" if several else "")
+                        for m in ("aoe", "foe"))
             lines.append(
                 f"| {row['scene']} | {candidate} | {', '.join(map(str, row['seeds']))} "
                 f"| {aoe} | {foe} "
@@ -121,7 +123,8 @@ def markdown(rows_by_candidate: dict[str, list[dict]], verdicts: dict[str, str])
         for row in rows:
             if "per_seed" in row:
                 lines.append(f"- {row['scene']}, {candidate}: " + "; ".join(
-                    f"{seed} {r['aoe']:.3f} / {r['foe']:.3f}" for seed, r in row["per_seed"].items()))
+                    f"{seed} {r['aoe']:.3f} / {r['foe']:.3f}"
+                    for seed, r in row["per_seed"].items()))
     lines += ["", "Command of each run: `python -m gst_jax.train --scene S --protocol paper "
               "--output deterministic --epochs E --seed SEED --schedule SCHEDULE` (the default "
               "schedule, `paper`, needs no flag), then `python -m gst_jax.evaluate RUN`.", "",
@@ -148,11 +151,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated training seeds (default: 1000,1001,1002)")
     parser.add_argument("--train", action="store_true",
                         help="train (or resume) and evaluate runs that have no final evaluation")
-    parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
-    parser.add_argument("--workdir", default="results",
-                        help="where table1.json is read and schedules.md/.json/.png and the "
-                             "per-run records runs/*.json are written (default: results)")
-    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    add_results_flags(parser, "schedules.md/.json/.png and the per-run records runs/*.json "
+                              "(table1.json is read there)")
     args = parser.parse_args(argv)
     out = Path(args.workdir)
     references = {row["scene"]: row for row in json.loads((out / "table1.json").read_text())}

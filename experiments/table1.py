@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from _common import PARKED, evaluate, latest_checkpoint, park, train
+from _common import PARKED, add_results_flags, evaluate, latest_checkpoint, park, train
 from _figures import table1_against_paper
 
 from gst_jax import data, pretrained
@@ -240,11 +240,7 @@ def main(argv: list[str] | None = None) -> None:
                              "(commit it to continue in another sitting)")
     parser.add_argument("--parked", type=Path, default=PARKED,
                         help=f"folder of parked runs (default: {PARKED})")
-    parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
-    parser.add_argument("--workdir", default="results",
-                        help="where table1[_loo][_p].md/.json and the per-run records runs/*.json "
-                             "are written (default: results)")
-    parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+    add_results_flags(parser, "table1[_loo][_p].md/.json/.png and the per-run records runs/*.json")
     args = parser.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",")]
     records = Path(args.workdir) / "runs"
