@@ -27,6 +27,7 @@ import numpy as np
 from bench_peak import measure_peak_gflops
 from common import matmul_flops, print_table, record
 from gst_jax import crowdnav
+from gst_jax.safe_pickle import read_args
 
 FIXTURE = Path(__file__).parents[1] / "tests" / "fixtures" / "crowdnav_parity.npz"
 CHECKPOINT = ("gst_updated/results/100-gumbel_social_transformer-faster_lstm-lr_0.001-"
@@ -64,15 +65,14 @@ def ours() -> crowdnav.Predictor:
 def crowdnav_interface(path: Path, num_env: int, threads: int):
     """CrowdNav++'s own predictor, as CrowdNav++ builds it (its code, from its checkout)."""
     sys.path.insert(0, str(path.absolute()))
-    import pickle
-
     import torch
     from gst_updated.scripts.wrapper.crowd_nav_interface_parallel import (
         CrowdNavPredInterfaceMultiEnv)
     torch.set_num_threads(threads)
     load_path = path / CHECKPOINT
-    with open(load_path / "checkpoint" / "args.pickle", "rb") as f:
-        args = pickle.load(f)
+    # Its args.pickle read without running what it names; its own code reads the .pt with
+    # torch's weights-only loading.
+    args = argparse.Namespace(**read_args(load_path / "checkpoint" / "args.pickle"))
     multiarray = np._core.multiarray if hasattr(np, "_core") else np.core.multiarray
     allowed = [(multiarray.scalar, "numpy.core.multiarray.scalar"), np.dtype,
                type(np.dtype(np.float32)), type(np.dtype(np.float64))]

@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import pickle
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from gst_jax.safe_pickle import read_args
 
 CHECKPOINTS = {
     "seed1000": "100-gumbel_social_transformer-faster_lstm-lr_0.001-init_temp_0.5-edge_head_0-"
@@ -73,8 +74,9 @@ def main() -> None:
     arrays = {"input_traj": input_traj, "input_mask": input_mask}
     for name, folder in CHECKPOINTS.items():
         load_path = args.crowdnav / "gst_updated" / "results" / folder
-        with open(load_path / "checkpoint" / "args.pickle", "rb") as f:
-            model_args = pickle.load(f)
+        # Read without running what it names; CrowdNav++'s own code reads the .pt with
+        # torch's weights-only loading.
+        model_args = argparse.Namespace(**read_args(load_path / "checkpoint" / "args.pickle"))
         # Its checkpoints hold numpy scalars (epoch metrics), which torch >= 2.6 loads only
         # when allowed by name.
         with torch.serialization.safe_globals(NUMPY_SCALARS):

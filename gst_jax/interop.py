@@ -1,11 +1,12 @@
 """Interoperability with the authors' PyTorch release: its weights as gst_jax parameters and
 back.
 
-- `params_from_torch`: a release state dict (torch names -> arrays, or a `.pt` file when
-  torch is installed) -> gst_jax parameters in the traced-n layout.
+- `params_from_torch`: a release state dict (torch names -> arrays, or a `.pt` file) ->
+  gst_jax parameters in the traced-n layout.
 - `params_to_torch`: gst_jax parameters (or gradients) -> the release's names and layouts.
 
-torch is not a dependency; `.pt` files need it, plain mappings of numpy arrays do not.
+torch is not needed: `.pt` files are read by `gst_jax.safe_pickle`, which admits tensors,
+plain values and numpy scalars and refuses anything else a file would run.
 Replaying a release run for the parity tests is `gst_jax.testing.release`.
 """
 
@@ -18,31 +19,25 @@ import jax.numpy as jnp
 import numpy as np
 
 from gst_jax.config import ModelConfig
+from gst_jax.errors import DataError
+from gst_jax.safe_pickle import read_torch
 
 SELECTOR = "gumbel_social_transformer.edge_selector."
 ENCODER = "gumbel_social_transformer.node_encoder_layers.{}."
 
 
 def load_state_dict(source: str | Path | Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """A mapping of torch names to arrays, from a mapping or a `.pt` file (needs torch)."""
+    """A mapping of torch names to arrays, from a mapping or a `.pt` file (the release's
+    checkpoint layout, `{"model_state_dict": ..., ...}`, or a bare state dict)."""
     if isinstance(source, Mapping):
         return {name: np.asarray(value) for name, value in source.items()}
-    try:
-        import torch
-    except ImportError as error:
-        raise ImportError(f"reading {source} needs torch; pass a dict of numpy arrays "
-                          "instead (e.g. {k: v.numpy() for k, v in state_dict.items()})") from error
-    # The release's checkpoints also hold its epoch metrics as numpy scalars; allow those
-    # (and nothing else beyond tensors) rather than unpickling arbitrary objects. Pickled
-    # under numpy 1, the scalar is named numpy.core's, which numpy 2 moved to numpy._core.
-    multiarray = (np._core if hasattr(np, "_core") else np.core).multiarray
-    numpy_scalars = [multiarray.scalar, (multiarray.scalar, "numpy.core.multiarray.scalar"),
-                     np.dtype, type(np.dtype(np.float32)), type(np.dtype(np.float64))]
-    with torch.serialization.safe_globals(numpy_scalars):
-        loaded = torch.load(str(source), map_location="cpu", weights_only=True)
-    if "model_state_dict" in loaded:  # the release's checkpoint layout
+    loaded = read_torch(source)
+    if isinstance(loaded, Mapping) and "model_state_dict" in loaded:
         loaded = loaded["model_state_dict"]
-    return {name: value.detach().cpu().numpy() for name, value in loaded.items()}
+    if not (isinstance(loaded, Mapping) and loaded
+            and all(isinstance(value, np.ndarray) for value in loaded.values())):
+        raise DataError(f"{source}: holds no state dict (a mapping of names to tensors)")
+    return dict(loaded)
 
 
 def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,

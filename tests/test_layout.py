@@ -21,7 +21,7 @@ COMMANDS = {"gst_jax.train", "gst_jax.evaluate", "gst_jax.sweep", "gst_jax.plot"
 # below. A name ending in "." stands for a package's modules (and the package itself).
 LAYERS = (
     ("foundation", {"gst_jax.config", "gst_jax.errors", "gst_jax.progress", "gst_jax.compiles"}),
-    ("data", {"gst_jax.data.", "gst_jax.simulate.crowds"}),
+    ("data", {"gst_jax.data.", "gst_jax.simulate.crowds", "gst_jax.safe_pickle"}),
     ("numerics", {"gst_jax.graph", "gst_jax.noise", "gst_jax.gumbel", "gst_jax.augment",
                   "gst_jax.parallel"}),
     ("model", {"gst_jax.model."}),
@@ -191,7 +191,8 @@ def _loaded_after(statement: str) -> list[str]:
 def test_importing_the_package_and_its_data_layer_loads_no_jax():
     """`import gst_jax` loads nothing heavy until a name is used; the data layer is numpy."""
     assert _loaded_after("import gst_jax") == []
-    assert _loaded_after("import gst_jax.data, gst_jax.config, gst_jax.errors") == []
+    assert _loaded_after("import gst_jax.data, gst_jax.config, gst_jax.errors, "
+                         "gst_jax.safe_pickle") == []
 
 
 def test_the_data_stats_command_loads_no_jax():

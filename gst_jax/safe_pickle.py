@@ -1,0 +1,302 @@
+"""Reading the pickles of others without running their code, and without torch (numpy only).
+
+`pickle.load` calls whatever a file names, so a crafted checkpoint runs any command. These
+readers admit only the globals that such files hold and refuse anything else with a
+`DataError` naming the file and the global:
+
+- `read_args(path) -> dict`: a pickled `argparse.Namespace` (CrowdNav++'s
+  `checkpoint/args.pickle`) or dict, of plain values.
+- `read_torch(path)`: a `torch.save` file in its zip format (torch >= 1.6): containers and plain
+  values, `collections.OrderedDict`, tensors and parameters as numpy arrays (each a copy, with
+  its storage offset, size and stride, in this machine's byte order), torch dtypes as numpy
+  dtypes, and numpy scalars (the release's epoch metrics, pickled under numpy 1 as
+  `numpy.core.multiarray.scalar`, which numpy 2 names `numpy._core.multiarray.scalar`).
+
+Nor can a file rewire the reader: the admitted globals refuse having their state set (pickle's
+BUILD), and numpy dtypes are built as copies, never numpy's shared ones.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from gst_jax.errors import DataError
+
+# torch's storage classes and dtypes by name, as torch.save writes them; numpy has no bfloat16.
+STORAGE_DTYPES = {
+    "DoubleStorage": np.float64, "FloatStorage": np.float32, "HalfStorage": np.float16,
+    "LongStorage": np.int64, "IntStorage": np.int32, "ShortStorage": np.int16,
+    "CharStorage": np.int8, "ByteStorage": np.uint8, "BoolStorage": np.bool_,
+    "ComplexFloatStorage": np.complex64, "ComplexDoubleStorage": np.complex128}
+TORCH_DTYPES = {
+    "float64": np.float64, "float32": np.float32, "float16": np.float16, "int64": np.int64,
+    "int32": np.int32, "int16": np.int16, "int8": np.int8, "uint8": np.uint8,
+    "uint16": np.uint16, "uint32": np.uint32, "uint64": np.uint64, "bool": np.bool_,
+    "complex64": np.complex64, "complex128": np.complex128}
+ARGS_ALLOWED = "only argparse.Namespace and plain values are allowed"
+TORCH_ALLOWED = "only tensors, plain values and numpy scalars are allowed"
+
+
+class _Refused(Exception):
+    """Why a file is refused; the reader prefixes the file's path."""
+
+
+class _Admitted:
+    """An admitted global: callable, and refusing BUILD, which would set its attributes."""
+
+    __slots__ = ("name", "function")
+
+    def __init__(self, name: str, function: Callable):
+        self.name = name
+        self.function = function
+
+    def __call__(self, *args):
+        return self.function(*args)
+
+    def __setstate__(self, state):
+        raise _Refused(f"refused to set the state of {self.name}")
+
+
+class _Namespace:
+    """argparse.Namespace as args.pickle holds it: NEWOBJ, then BUILD with its values."""
+
+    def __setstate__(self, state):
+        if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
+            raise _Refused("an argparse.Namespace whose state is not a dict of names")
+        self.values = dict(state)
+
+
+class _StorageType:
+    """A torch storage class (`torch.FloatStorage`, ...), the dtype its bytes hold."""
+
+    __slots__ = ("name", "dtype")
+
+    def __init__(self, name: str, dtype: np.dtype):
+        self.name = name
+        self.dtype = dtype
+
+    def __setstate__(self, state):
+        raise _Refused(f"refused to set the state of {self.name}")
+
+
+class _Storage:
+    """One storage of a .pt file: its bytes, the dtype torch saved them as, their byte order."""
+
+    __slots__ = ("raw", "dtype", "byteorder", "arrays")
+
+    def __init__(self, raw: bytes, dtype: np.dtype, byteorder: str):
+        self.raw = raw
+        self.dtype = dtype
+        self.byteorder = byteorder
+        self.arrays = {}    # by dtype: the tensors of a storage share it
+
+    def values(self, dtype: np.dtype) -> np.ndarray:
+        """The storage as a 1-D array of `dtype`, in this machine's byte order."""
+        if dtype not in self.arrays:
+            stored = np.dtype(dtype).newbyteorder("<" if self.byteorder == "little" else ">")
+            self.arrays[dtype] = np.frombuffer(
+                self.raw, stored, count=len(self.raw) // stored.itemsize).astype(dtype)
+        return self.arrays[dtype]
+
+    def __setstate__(self, state):
+        raise _Refused("refused to set the state of a storage")
+
+
+def _ints(value, what: str) -> tuple[int, ...]:
+    if not isinstance(value, (tuple, list)) or not all(type(v) is int for v in value):
+        raise _Refused(f"a tensor whose {what} is not a tuple of integers")
+    return tuple(value)
+
+
+def _tensor(storage, storage_offset, size, stride, dtype=None) -> np.ndarray:
+    """A copy of `storage`'s elements at `storage_offset + sum(index * stride)`, shaped `size`.
+    Checked first: as_strided on a crafted stride would read outside the storage."""
+    if not isinstance(storage, _Storage):
+        raise _Refused("a tensor not backed by a storage of this file")
+    dtype = storage.dtype if dtype is None else dtype
+    size, stride = _ints(size, "size"), _ints(stride, "stride")
+    if type(storage_offset) is not int or len(size) != len(stride):
+        raise _Refused(f"a tensor of size {size} with stride {stride}")
+    if storage_offset < 0 or min(size + stride, default=0) < 0:
+        raise _Refused(f"a tensor with a negative offset, size or stride ({storage_offset}, "
+                       f"{size}, {stride})")
+    values = storage.values(dtype)
+    if math.prod(size) == 0:
+        return np.zeros(size, dtype)
+    last = storage_offset + sum((n - 1) * s for n, s in zip(size, stride))
+    if last >= len(values):
+        raise _Refused(f"a tensor of size {size}, stride {stride} and offset {storage_offset} "
+                       f"beyond its storage of {len(values)} elements")
+    strides = tuple(s * values.itemsize for s in stride)
+    return np.lib.stride_tricks.as_strided(values[storage_offset:], size, strides).copy()
+
+
+def _rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad=False,
+                       backward_hooks=None, metadata=None) -> np.ndarray:
+    return _tensor(storage, storage_offset, size, stride)
+
+
+def _rebuild_tensor_v3(storage, storage_offset, size, stride, requires_grad, backward_hooks,
+                       dtype, metadata=None) -> np.ndarray:
+    """torch's rebuild for dtypes that have no typed storage (uint16, ...): the dtype apart."""
+    if not isinstance(dtype, np.dtype):
+        raise _Refused("a tensor whose dtype is not a torch dtype")
+    return _tensor(storage, storage_offset, size, stride, dtype)
+
+
+def _rebuild_parameter(data, requires_grad=False, backward_hooks=None, state=None):
+    if not isinstance(data, np.ndarray):
+        raise _Refused("a parameter that is not a tensor")
+    return data
+
+
+def _encode(text, encoding="latin1") -> bytes:
+    """`_codecs.encode`, with which pickle's protocol 2 stores bytes."""
+    if not isinstance(text, str) or encoding not in ("latin1", "latin-1"):
+        raise _Refused("_codecs.encode other than of a str in latin1 (pickled bytes)")
+    return text.encode("latin1")
+
+
+def _numpy_dtype(spec, align=False, copy=True) -> np.dtype:
+    # Always a copy: the BUILD that follows sets its byte order, not that of numpy's own.
+    if not isinstance(spec, str):
+        raise _Refused(f"numpy.dtype({spec!r})")
+    dtype = np.dtype(spec, align=bool(align), copy=True)
+    if dtype.hasobject:
+        raise _Refused(f"numpy.dtype({spec!r}), which holds Python objects")
+    return dtype
+
+
+def _numpy_scalar(dtype, data=None):
+    if not isinstance(dtype, np.dtype) or dtype.hasobject or not isinstance(data, bytes) \
+            or len(data) != dtype.itemsize:
+        raise _Refused("a numpy scalar other than a plain number")
+    return np.frombuffer(data, dtype, count=1)[0]
+
+
+def _admit(table: dict[str, Callable]) -> dict[tuple[str, str], Any]:
+    return {tuple(name.rsplit(".", 1)): _Admitted(name, f) for name, f in table.items()}
+
+
+# Builtins that protocol 2 and 3 pickles name (protocol 2 as `__builtin__`, Python 2's name).
+_PLAIN = {**_admit({"builtins.set": set, "builtins.frozenset": frozenset,
+                    "builtins.complex": complex, "_codecs.encode": _encode}),
+          **_admit({"__builtin__.set": set, "__builtin__.frozenset": frozenset,
+                    "__builtin__.complex": complex})}
+_ARGS_GLOBALS = {**_PLAIN, ("argparse", "Namespace"): _Namespace}
+_TORCH_GLOBALS = {
+    **_PLAIN,
+    **_admit({"collections.OrderedDict": collections.OrderedDict,
+              "torch._utils._rebuild_tensor": _tensor,
+              "torch._utils._rebuild_tensor_v2": _rebuild_tensor_v2,
+              "torch._utils._rebuild_tensor_v3": _rebuild_tensor_v3,
+              "torch._utils._rebuild_parameter": _rebuild_parameter,
+              "torch._utils._rebuild_parameter_with_state": _rebuild_parameter,
+              "numpy.dtype": _numpy_dtype,
+              "numpy.core.multiarray.scalar": _numpy_scalar,
+              "numpy._core.multiarray.scalar": _numpy_scalar}),
+    **{("torch", name): _StorageType(f"torch.{name}", np.dtype(dtype))
+       for name, dtype in STORAGE_DTYPES.items()},
+    ("torch.storage", "UntypedStorage"): _StorageType("torch.storage.UntypedStorage",
+                                                      np.dtype(np.uint8)),
+}
+_TORCH_DTYPE_NAMES = {("torch", name): dtype for name, dtype in TORCH_DTYPES.items()}
+
+
+class _Unpickler(pickle.Unpickler):
+    def __init__(self, file, admitted: dict, allowed: str, storage: Callable | None = None):
+        super().__init__(file)
+        self.admitted, self.allowed, self.storage = admitted, allowed, storage
+
+    def find_class(self, module: str, name: str):
+        if (module, name) in self.admitted:
+            return self.admitted[module, name]
+        if self.storage is not None and (module, name) in _TORCH_DTYPE_NAMES:
+            return np.dtype(_TORCH_DTYPE_NAMES[module, name], copy=True)
+        raise _Refused(f"refused to unpickle {module}.{name} ({self.allowed})")
+
+    def persistent_load(self, pid):
+        if self.storage is None:
+            raise _Refused(f"refused a persistent id ({self.allowed})")
+        return self.storage(pid)
+
+
+def _read(path: Path, read: Callable[[], Any]):
+    """`read()`, its failures as one line naming `path`."""
+    try:
+        return read()
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such file") from None
+    except _Refused as refused:
+        raise DataError(f"{path}: {refused}") from None
+    except Exception as error:  # a malformed file can fail anywhere inside pickle or zipfile
+        raise DataError(f"{path}: not readable ({type(error).__name__}: {error})") from None
+
+
+def read_args(path: str | Path) -> dict[str, Any]:
+    """The values of a pickled `argparse.Namespace` (or dict) of plain values, as a dict."""
+    path = Path(path)
+
+    def read():
+        with open(path, "rb") as f:
+            loaded = _Unpickler(f, _ARGS_GLOBALS, ARGS_ALLOWED).load()
+        if isinstance(loaded, _Namespace):
+            return dict(getattr(loaded, "values", {}))
+        if isinstance(loaded, dict):
+            return loaded
+        raise _Refused(f"holds a {type(loaded).__name__}, not an argparse.Namespace")
+    return _read(path, read)
+
+
+def read_torch(path: str | Path) -> Any:
+    """What `torch.load(path, weights_only=True)` returns, with numpy arrays for tensors."""
+    path = Path(path)
+
+    def read():
+        with open(path, "rb") as f:
+            head = f.read(4)
+        if not head.startswith(b"PK"):
+            raise _Refused("not a torch file in its zip format: torch.save's legacy format "
+                           "(before torch 1.6) is not read; re-save it with a newer torch"
+                           if head[:1] == b"\x80" else "not a torch file (no zip archive)")
+        with zipfile.ZipFile(path) as archive:
+            pickles = [n for n in archive.namelist()
+                       if n.endswith("/data.pkl") and n.count("/") == 1]
+            if len(pickles) != 1:
+                raise _Refused("not a torch file (no single <archive>/data.pkl)")
+            prefix = pickles[0][: -len("data.pkl")]
+            names = set(archive.namelist())
+            byteorder = (archive.read(prefix + "byteorder").decode()
+                         if prefix + "byteorder" in names else "little")
+            if byteorder not in ("little", "big"):
+                raise _Refused(f"unknown byte order {byteorder!r}")
+            storages: dict[str, _Storage] = {}
+
+            def storage(pid) -> _Storage:
+                if not (isinstance(pid, tuple) and len(pid) == 5
+                        and pid[0] in ("storage", b"storage") and isinstance(pid[1], _StorageType)
+                        and isinstance(pid[2], str) and type(pid[4]) is int and pid[4] >= 0):
+                    raise _Refused(f"refused the persistent id {pid!r} ({TORCH_ALLOWED})")
+                _, storage_type, key, _, numel = pid
+                if key not in storages:
+                    record = prefix + "data/" + key
+                    if record not in names:
+                        raise _Refused(f"no storage {record}")
+                    raw = archive.read(record)
+                    if len(raw) < numel * storage_type.dtype.itemsize:
+                        raise _Refused(f"storage {record} holds {len(raw)} bytes, fewer than "
+                                       f"{numel} of {storage_type.dtype}")
+                    storages[key] = _Storage(raw[: numel * storage_type.dtype.itemsize],
+                                             storage_type.dtype, byteorder)
+                return storages[key]
+
+            with archive.open(pickles[0]) as f:
+                return _Unpickler(f, _TORCH_GLOBALS, TORCH_ALLOWED, storage).load()
+    return _read(path, read)
