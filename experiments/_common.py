@@ -4,6 +4,11 @@ parking an unfinished run so that another sitting (or machine) continues it.
 Run the scripts as `python experiments/<script>.py`: their folder is then on the path, and
 `from _common import ...` finds this module (the tests put it there through pytest's
 `pythonpath`).
+
+The scripts that tabulate runs write into a folder of their own, runs/<script>/ (or
+--workdir), beside the records of the finished evaluations they found (<out>/runs/*.json).
+Only `--publish` writes into results/, the published tables and records committed with the
+code, and only then do the records there count as finished runs.
 """
 
 from __future__ import annotations
@@ -22,6 +27,9 @@ from gst_jax.training.loop import fit
 # continues them): one commit per sitting replaces the previous park; results/ holds only
 # finished records.
 PARKED = Path("parked")
+# The published tables and their records, in the checkout beside this folder; written only
+# with --publish.
+RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 def train(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
@@ -66,10 +74,26 @@ def park(workdir: Path, destination: Path) -> int | None:
     return epoch
 
 
-def add_results_flags(parser: argparse.ArgumentParser, written: str) -> None:
-    """--runs, --workdir and --json of the scripts that tabulate runs into results/;
-    `written`: what lands in --workdir, for its help."""
-    parser.add_argument("--runs", default="runs", help="folder of work directories (default: runs)")
-    parser.add_argument("--workdir", default="results",
-                        help=f"where {written} are written (default: results)")
+def add_results_flags(parser: argparse.ArgumentParser, script: str, written: str,
+                      runs: bool = True) -> None:
+    """--runs, --workdir or --publish, and --json of the scripts that tabulate runs;
+    `script`: the default output folder's name, runs/<script>; `written`: what lands there,
+    for the help. Read the output folder with `results_folder`."""
+    if runs:
+        parser.add_argument("--runs", default="runs",
+                            help="folder of work directories (default: runs)")
+    default = Path("runs") / script
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--workdir", type=Path, default=default,
+                       help=f"where {written} are written (default: {default})")
+    where.add_argument("--publish", action="store_true",
+                       help="write into the checkout's results/ instead, replacing the "
+                            "published tables" + (" (the finished evaluations recorded there "
+                                                  "then count as finished runs)" if runs else ""))
     parser.add_argument("--json", action="store_true", help="print the rows as JSON")
+
+
+def results_folder(args: argparse.Namespace) -> Path:
+    """Where a script parsed with `add_results_flags` writes: results/ with --publish, else
+    --workdir."""
+    return RESULTS if args.publish else args.workdir

@@ -3,16 +3,19 @@
     python experiments/crowd.py --train                      # GST (D): train or resume, evaluate
     python experiments/crowd.py --train --output gaussian    # GST (P)
     python experiments/crowd.py --park                       # keep the newest checkpoint
+    python experiments/crowd.py --publish                    # the published results/crowd.md
     python -m gst_jax.pretrained export runs/crowd-paper-d-n1-e200-seed1000 --name crowd_d
 
 The run is `python -m gst_jax.train --scene crowd --protocol paper --output O --epochs E
 --seed s` (n = 1, ghost): its train split is the union of the paper train splits of the five
 ETH/UCY scenes, LCAS and WILDTRACK. `--train` runs or resumes it as `experiments/table1.py`
 does (same parking in parked/), then evaluates it on every scene's test split, as
-`python -m gst_jax.evaluate RUN --scene S` does. Writes <results>/crowd[_p].md and .json: per scene,
-the general model beside that scene's own Table I model (its record in <results>/runs/, seed
-1000) and constant velocity; the run's record <results>/runs/<run name>.json keeps the
-per-scene metrics.
+`python -m gst_jax.evaluate RUN --scene S` does. Writes <out>/crowd[_p].md and .json: per
+scene, the general model beside that scene's own Table I model (its record in <out>/runs/, or
+the shipped model; seed 1000) and constant velocity; the run's record
+<out>/runs/<run name>.json keeps the per-scene metrics. <out> is runs/crowd/ (or --workdir);
+`--publish` makes it the checkout's results/, whose committed records then count as finished
+runs (experiments/table1.py).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import json
 import sys
 from pathlib import Path
 
-from _common import PARKED, add_results_flags, evaluate, park
+from _common import PARKED, add_results_flags, evaluate, park, results_folder
 from table1 import run_scene_seed, train_flags, workdir_of
 
 from gst_jax import pretrained
@@ -47,11 +50,12 @@ def per_scene_metrics(workdir: Path, epochs: int, evaluate_missing: bool) -> dic
 
 
 def crowd_record(runs: Path, records: Path, output: str, epochs: int, seed: int, train: bool,
-                 checkpoint_every: int, parked_runs: Path) -> dict | None:
+                 checkpoint_every: int, parked_runs: Path,
+                 drop_parked: bool = False) -> dict | None:
     """The general run's record (its union test metrics, see table1.run_scene_seed) with
     "per_scene": its test metrics on every scene evaluated so far."""
     record = run_scene_seed(runs, records, CROWD, "paper", output, epochs, seed, train,
-                            checkpoint_every, parked_runs)
+                            checkpoint_every, parked_runs, drop_parked=drop_parked)
     if record is None:
         return None
     workdir = workdir_of(runs, CROWD, "paper", output, epochs, seed)
@@ -127,9 +131,9 @@ def main(argv: list[str] | None = None) -> None:
                              "--parked (commit it to continue in another sitting)")
     parser.add_argument("--parked", type=Path, default=PARKED,
                         help=f"folder of parked runs (default: {PARKED})")
-    add_results_flags(parser, "crowd[_p].md/.json and the run's record runs/*.json")
+    add_results_flags(parser, "crowd", "crowd[_p].md/.json and the run's record runs/*.json")
     args = parser.parse_args(argv)
-    runs, out = Path(args.runs), Path(args.workdir)
+    runs, out = Path(args.runs), results_folder(args)
     records = out / "runs"
     workdir = workdir_of(runs, CROWD, "paper", args.output, args.epochs, args.seed)
     if args.park:
@@ -138,7 +142,7 @@ def main(argv: list[str] | None = None) -> None:
         return
 
     record = crowd_record(runs, records, args.output, args.epochs, args.seed, args.train,
-                          args.checkpoint_every, args.parked)
+                          args.checkpoint_every, args.parked, drop_parked=args.publish)
     table = rows(record, runs, records, args.output, args.epochs)
     command = " ".join(["python -m gst_jax.train",
                         *train_flags(CROWD, "paper", args.output, args.epochs, args.seed)])

@@ -5,13 +5,16 @@
         --pred-len 5 --edge-heads 0 --no-ghost --node-dim 64 --encoder-layers 1 --lstm-dim 64 \\
         --temporal faster_lstm --output gaussian --epochs 100 --workdir runs/crowdnav_sim
     python experiments/crowdnav_sim.py --model runs/crowdnav_sim --data runs/sim_crowds
+    python experiments/crowdnav_sim.py --data runs/sim_crowds --publish   # results/crowdnav_sim.md
 
 Both models on the test split of the simulated crowds (the last 20 % of every episode):
 the paper's protocol (20 sampled runs; GST (P) samples its Gaussians) and the mean mode a
 planner calls (CrowdNav++'s `sampling=False`: one run, every step the Gaussian's mean), with
 constant velocity on the same pedestrians. CrowdNav++'s is its public `..._seed1000/sj`
 checkpoint (weights read from tests/fixtures/crowdnav_parity.npz), trained on CrowdNav++'s
-own simulator. Writes results/crowdnav_sim.md and .json.
+own simulator. Writes crowdnav_sim.md and .json into runs/crowdnav_sim_table/ (or --workdir;
+not runs/crowdnav_sim, the work directory of the training above); `--publish` replaces the
+published ones in the checkout's results/.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from _common import add_results_flags, results_folder
 
 from gst_jax import crowdnav, data
 from gst_jax.config import DataConfig
@@ -53,13 +57,14 @@ def scores(params, config, test_set) -> dict:
             "pedestrians": sampled["pedestrians"]}
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="pretrained:crowdnav_sim",
                         help="the model trained here (default: pretrained:crowdnav_sim)")
     parser.add_argument("--data", type=Path, required=True, help="the simulated crowds")
-    parser.add_argument("--workdir", type=Path, default=Path("results"))
-    args = parser.parse_args()
+    add_results_flags(parser, "crowdnav_sim_table", "crowdnav_sim.md and .json", runs=False)
+    args = parser.parse_args(argv)
+    out = results_folder(args)
     ours = load_model(args.model)
     theirs = crowdnav_checkpoint()
     data_config = DataConfig(scene=args.data.name, data=str(args.data.absolute()), fps=4)
@@ -83,10 +88,10 @@ def main() -> None:
         lines.append(f"| {name} | {r['aoe']:.3f} / {r['foe']:.3f} | {r['min_ade']:.3f} / "
                      f"{r['min_fde']:.3f} | {r['mean_aoe']:.3f} / {r['mean_foe']:.3f} | "
                      f"{r['cv_aoe']:.3f} / {r['cv_foe']:.3f} |")
-    args.workdir.mkdir(parents=True, exist_ok=True)
-    (args.workdir / "crowdnav_sim.md").write_text("\n".join(lines) + "\n")
-    (args.workdir / "crowdnav_sim.json").write_text(json.dumps(rows, indent=2) + "\n")
-    print("\n".join(lines))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "crowdnav_sim.md").write_text("\n".join(lines) + "\n")
+    (out / "crowdnav_sim.json").write_text(json.dumps(rows, indent=2) + "\n")
+    print(json.dumps(rows, indent=2) if args.json else "\n".join(lines))
 
 
 if __name__ == "__main__":

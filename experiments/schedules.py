@@ -4,6 +4,7 @@ results/table1.json.
 
     python experiments/schedules.py                                # tabulate runs/ and the records
     python experiments/schedules.py --candidates compressed:100 --train   # train what is missing
+    python experiments/schedules.py --publish                      # results/schedules.md
 
 Candidates: `compressed:E` is the paper's shape fitted to E epochs (the learning rate x 0.3
 every E/4 epochs, tau 0.5 -> 0.03 over E); `paper:E` keeps the paper's learning-rate steps
@@ -11,7 +12,10 @@ every E/4 epochs, tau 0.5 -> 0.03 over E); `paper:E` keeps the paper's learning-
 seeds of both AOE and FOE is no worse than the 200-epoch figure plus the larger of its spread
 over seeds and 3 % of it; the candidate is accepted when every scene accepts it with three
 seeds. Runs are found (and trained) exactly as experiments/table1.py finds its own, and their
-evaluations kept as records in <results>/runs/. Writes <results>/schedules.md, .json and .png.
+evaluations kept as records in <out>/runs/. Writes <out>/schedules.md, .json and .png. <out> is
+runs/schedules/ (or --workdir); `--publish` makes it the checkout's results/, whose committed
+records then count as finished runs. The 200-epoch reference is the published
+results/table1.json (or --reference).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from _common import add_results_flags
+from _common import RESULTS, add_results_flags, results_folder
 from _figures import schedule_against_paper
 from table1 import run_scene_seed, train_flags
 
@@ -150,12 +154,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", default="1000,1001,1002",
                         help="comma-separated training seeds (default: 1000,1001,1002)")
     parser.add_argument("--train", action="store_true",
-                        help="train (or resume) and evaluate runs that have no final evaluation")
-    add_results_flags(parser, "schedules.md/.json/.png and the per-run records runs/*.json "
-                              "(table1.json is read there)")
+                        help="train (or resume) and evaluate the runs that have neither a final "
+                             "evaluation under --runs nor a record in the output folder")
+    parser.add_argument("--reference", type=Path, default=RESULTS / "table1.json",
+                        help="the 200-epoch rows, as experiments/table1.py writes them "
+                             "(default: the published results/table1.json)")
+    add_results_flags(parser, "schedules",
+                      "schedules.md/.json/.png and the per-run records runs/*.json")
     args = parser.parse_args(argv)
-    out = Path(args.workdir)
-    references = {row["scene"]: row for row in json.loads((out / "table1.json").read_text())}
+    out = results_folder(args)
+    references = {row["scene"]: row for row in json.loads(args.reference.read_text())}
     seeds = [int(s) for s in args.seeds.split(",")]
     rows_by_candidate = {}
     for schedule, epochs in args.candidates:
@@ -163,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
         for scene in args.scenes:
             per_seed = [r for seed in seeds if (r := run_scene_seed(
                 Path(args.runs), out / "runs", scene, "paper", "deterministic", epochs, seed,
-                args.train, schedule=schedule))]
+                args.train, schedule=schedule, drop_parked=args.publish))]
             row = compare(scene, schedule, epochs, per_seed, references[scene])
             if per_seed:
                 row["per_seed"] = {str(r["seed"]): {"aoe": r["aoe"], "foe": r["foe"]}
@@ -171,6 +179,7 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(row)
         rows_by_candidate[f"{schedule}:{epochs}"] = rows
     verdicts = {name: verdict(rows) for name, rows in rows_by_candidate.items()}
+    out.mkdir(parents=True, exist_ok=True)
     schedule_against_paper(rows_by_candidate, out / "schedules.png")
     (out / "schedules.md").write_text(markdown(rows_by_candidate, verdicts))
     record = {"tolerance": TOLERANCE, "seeds_needed": SEEDS_NEEDED, "verdicts": verdicts,

@@ -3,20 +3,26 @@
     python experiments/table1.py                       # tabulate what runs/ holds
     python experiments/table1.py --train --seeds 1000,1001,1002 --scenes eth
     python experiments/table1.py --protocol loo --train
+    python experiments/table1.py --publish --seeds 1000,1001,1002   # the published table
 
 Each (scene, seed) is the work directory of `python -m gst_jax.train --scene S --protocol P
 --output O --epochs E --seed s` under --runs (n = 1, ghost: the paper's configuration).
 `--train` trains or resumes that run where it is incomplete, then evaluates it with the
-paper protocol (20 runs), as `python -m gst_jax.evaluate` does. Every finished evaluation is also kept
-as a small record in <results>/runs/<run name>.json (committed), so the table survives the loss
-of the work directories. Scenes without a finished evaluation are listed as missing (with
-the epoch an unfinished run has reached), never filled in. Writes
-<results>/table1[_loo][_p].md, .json and a .png of the bars per scene.
+paper protocol (20 runs), as `python -m gst_jax.evaluate` does. Every finished evaluation is
+also kept as a small record in <out>/runs/<run name>.json, so the table survives the loss of
+the work directories. Scenes without a finished evaluation are listed as missing (with the
+epoch an unfinished run has reached), never filled in; without --train a scene's seed-1000
+row falls back to the test metrics of the shipped model trained by the same command. Writes
+<out>/table1[_loo][_p].md, .json and a .png of the bars per scene.
+
+<out> is runs/table1/ (or --workdir). `--publish` makes it the checkout's results/: it
+rewrites the published tables, and the records committed in results/runs/ count as
+finished runs (without it they do not, so `--train` trains what --runs lacks).
 
 A run longer than one sitting (univ on two CPU cores) continues in the next one: `--park`
 copies the newest checkpoint of every unfinished run into <parked>/<run name>/, to be
-committed; `--train` on a machine without the work directory starts from that copy, and the
-copy is deleted once the run's evaluation is recorded.
+committed; `--train` on a machine without the work directory starts from that copy, and with
+--publish the copy is deleted once the run's evaluation is recorded in results/runs/.
 """
 
 from __future__ import annotations
@@ -28,7 +34,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from _common import PARKED, add_results_flags, evaluate, latest_checkpoint, park, train
+from _common import (PARKED, add_results_flags, evaluate, latest_checkpoint, park,
+                     results_folder, train)
 from _figures import table1_against_paper
 
 from gst_jax import data, pretrained
@@ -80,10 +87,13 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
                    epochs: int, seed: int, train_missing: bool,
                    checkpoint_every: int = TrainConfig.checkpoint_every,
                    parked_runs: Path = PARKED,
-                   schedule: str = TrainConfig.schedule) -> dict | None:
+                   schedule: str = TrainConfig.schedule,
+                   drop_parked: bool = False) -> dict | None:
     """Evaluation and training time of one run: its work directory's final evaluation (kept as
-    a record in `records`), else that record, else the record of the shipped model trained by
-    the same command, else (if `train_missing`) a new run."""
+    a record in `records`), else that record, else if `train_missing` a new run (trained and
+    evaluated in its work directory under `runs`), else the record of the shipped model
+    trained by the same command. `drop_parked`: delete the run's parked copy once it is
+    recorded (when `records` are the published ones, committed in its place)."""
     workdir = workdir_of(runs, scene, protocol, output, epochs, seed, schedule)
     record_path = records / f"{workdir.name}.json"
     parked = parked_runs / workdir.name
@@ -94,21 +104,22 @@ def run_scene_seed(runs: Path, records: Path, scene: str, protocol: str, output:
                   "code": WorkDir(workdir).code_versions()}
         records.mkdir(parents=True, exist_ok=True)
         record_path.write_text(json.dumps(record, indent=2) + "\n")
-        shutil.rmtree(parked, ignore_errors=True)
+        if drop_parked:
+            shutil.rmtree(parked, ignore_errors=True)
         return record
     if record_path.exists():
         return json.loads(record_path.read_text())
-    if (record := shipped_record(scene, protocol, output, epochs, seed, schedule)) is not None:
-        return {**record, "seed": seed}
     if not train_missing:
-        return None
+        record = shipped_record(scene, protocol, output, epochs, seed, schedule)
+        return None if record is None else {**record, "seed": seed}
     if parked.is_dir() and not (workdir / "checkpoints").is_dir():
         shutil.copytree(parked, workdir)                # continue another sitting's run
     train(ModelConfig(output=output), data_config, TrainConfig(
         epochs=epochs, seed=seed, checkpoint_every=checkpoint_every, schedule=schedule), workdir)
     evaluate(workdir)
     return run_scene_seed(runs, records, scene, protocol, output, epochs, seed,
-                          train_missing=False, parked_runs=parked_runs, schedule=schedule)
+                          train_missing=False, parked_runs=parked_runs, schedule=schedule,
+                          drop_parked=drop_parked)
 
 
 def trained_epochs(runs: Path, parked_runs: Path, scene: str, protocol: str, output: str,
@@ -231,7 +242,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", default="1000",
                         help="comma-separated training seeds (default: 1000, the paper's)")
     parser.add_argument("--train", action="store_true",
-                        help="train (or resume) and evaluate runs that have no final evaluation")
+                        help="train (or resume) and evaluate the runs that have neither a final "
+                             "evaluation under --runs nor a record in the output folder (a "
+                             "shipped model does not count)")
     parser.add_argument("--checkpoint-every", type=int, default=5,
                         help="epochs between checkpoints of the runs --train starts or resumes "
                              "(default: 5)")
@@ -240,10 +253,12 @@ def main(argv: list[str] | None = None) -> None:
                              "(commit it to continue in another sitting)")
     parser.add_argument("--parked", type=Path, default=PARKED,
                         help=f"folder of parked runs (default: {PARKED})")
-    add_results_flags(parser, "table1[_loo][_p].md/.json/.png and the per-run records runs/*.json")
+    add_results_flags(parser, "table1",
+                      "table1[_loo][_p].md/.json/.png and the per-run records runs/*.json")
     args = parser.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",")]
-    records = Path(args.workdir) / "runs"
+    out = results_folder(args)
+    records = out / "runs"
     if args.park:
         for scene in args.scenes:
             for seed in seeds:
@@ -258,7 +273,7 @@ def main(argv: list[str] | None = None) -> None:
     for scene in args.scenes:
         per_seed = [r for seed in seeds if (r := run_scene_seed(
             Path(args.runs), records, scene, args.protocol, args.output, args.epochs, seed,
-            args.train, args.checkpoint_every, args.parked))]
+            args.train, args.checkpoint_every, args.parked, drop_parked=args.publish))]
         seed_shown = seeds[0] if len(seeds) == 1 else "SEED"
         command = " ".join(["python -m gst_jax.train", *train_flags(
             scene, args.protocol, args.output, args.epochs, seed_shown)])
@@ -270,7 +285,6 @@ def main(argv: list[str] | None = None) -> None:
         rows.append(summarize(scene, args.output, per_seed, command, baseline, in_progress))
     stem = "table1" + ("_loo" if args.protocol == "loo" else "") + (
         "_p" if args.output == "gaussian" else "")
-    out = Path(args.workdir)
     out.mkdir(parents=True, exist_ok=True)
     table1_against_paper(rows, out / f"{stem}.png", title=(
         f"{'GST (P)' if args.output == 'gaussian' else 'GST (D)'}, {args.protocol} protocol, "

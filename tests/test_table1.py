@@ -1,8 +1,10 @@
 """experiments/table1.py, crowd.py and schedules.py: rows from work directories and shipped
-models, spread over seeds; parked runs; a shorter schedule's verdict."""
+models, spread over seeds; parked runs; a shorter schedule's verdict; results/ written only with
+--publish, and the published tables reproduced byte for byte by their documented commands."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -15,6 +17,8 @@ import table1
 
 from gst_jax.io.checkpoints import Checkpointer
 from gst_jax.io.workdir import WorkDir
+
+ROOT = Path(__file__).parents[1]
 
 
 def _isolated(tmp_path: Path) -> list[str]:
@@ -149,12 +153,17 @@ def test_a_parked_run_continues_from_its_copy_and_the_copy_goes_once_it_is_recor
     records = WorkDir(tmp_path / "second").read_metrics()
     assert [r["epoch"] for r in records] == [1, 2] and records[:1] == first_epoch
 
-    # Once the run's evaluation is recorded, its parked copy is deleted.
+    # Once the run's evaluation is recorded in the published records, its parked copy is
+    # deleted; a table of one's own leaves the (committed) copy alone.
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0])
     parked = tmp_path / "parked" / "hotel-paper-d-n1-e200-seed1000"
     parked.mkdir(parents=True)
-    table1.main(["--scenes", "hotel", "--runs", str(tmp_path / "runs"), "--workdir",
-                 str(tmp_path / "results"), "--parked", str(tmp_path / "parked")])
+    argv = ["--scenes", "hotel", "--runs", str(tmp_path / "runs"), "--parked",
+            str(tmp_path / "parked")]
+    table1.main([*argv, "--workdir", str(tmp_path / "mine")])
+    assert parked.exists()
+    monkeypatch.setattr(_common, "RESULTS", tmp_path / "published")
+    table1.main([*argv, "--publish"])
     assert not parked.exists()
 
 
@@ -213,7 +222,8 @@ def test_a_shorter_schedule_is_accepted_only_where_every_scene_holds_with_three_
         _fake_run(tmp_path / "runs", "eth", seed, 0.9, [30.0], epochs=100, schedule="compressed")
     _fake_run(tmp_path / "runs", "hotel", 1000, 0.9, [30.0], epochs=100, schedule="compressed")
 
-    argv = ["--scenes", "eth", "hotel", "--runs", str(tmp_path / "runs"), "--workdir", str(out)]
+    argv = ["--scenes", "eth", "hotel", "--runs", str(tmp_path / "runs"), "--workdir", str(out),
+            "--reference", str(out / "table1.json")]
     schedules.main([*argv, "--candidates", "compressed:50", "compressed:100"])
     record = json.loads((out / "schedules.json").read_text())
     assert record["verdicts"] == {"compressed:50": "rejected", "compressed:100": "open"}
@@ -233,3 +243,124 @@ def test_a_shorter_schedule_is_accepted_only_where_every_scene_holds_with_three_
         "compressed:100": "accepted"}
     with pytest.raises(SystemExit):                    # a schedule that does not exist
         schedules.main([*argv, "--candidates", "cosine:100"])
+
+
+def _contents(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_by_default_the_scripts_write_a_folder_of_their_own_and_leave_results_alone(
+        tmp_path, monkeypatch):
+    published = _contents(ROOT / "results")
+    monkeypatch.chdir(tmp_path)                     # runs/<script>/ lands here
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0])
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.90, [30.0], epochs=50, schedule="compressed")
+    table1.main(["--scenes", "hotel", "eth"])
+    crowd.main([])
+    schedules.main(["--scenes", "hotel", "--candidates", "compressed:50"])
+
+    assert _contents(ROOT / "results") == published
+    hotel, eth = json.loads((tmp_path / "runs" / "table1" / "table1.json").read_text())
+    assert hotel["aoe"] == 0.20 and hotel["seeds"] == [1000]
+    # The published records (eth: seeds 1000-1002) are not this table's runs; seed 1000 falls
+    # back to the shipped model, as before any record.
+    assert eth["seeds"] == [1000]
+    assert eth["per_seed"]["1000"]["workdir"] == "gst_jax/pretrained/eth_d"
+    assert (tmp_path / "runs" / "table1" / "runs" / "hotel-paper-d-n1-e200-seed1000.json").is_file()
+    assert (tmp_path / "runs" / "crowd" / "crowd.md").is_file()
+    [row] = json.loads((tmp_path / "runs" / "schedules" / "schedules.json").read_text())[
+        "rows"]["compressed:50"]
+    assert row["aoe"] == 0.90
+    published_hotel = [r for r in json.loads((ROOT / "results" / "table1.json").read_text())
+                       if r["scene"] == "hotel"]
+    assert [row["reference"]["aoe"]] == [r["aoe"] for r in published_hotel]  # the published 200
+    with pytest.raises(SystemExit):                 # one output: a folder, or results/
+        table1.main(["--publish", "--workdir", str(tmp_path / "out")])
+
+
+def test_publish_writes_results_and_only_then_its_records_count(tmp_path, monkeypatch):
+    monkeypatch.setattr(_common, "RESULTS", tmp_path / "results")
+    _fake_run(tmp_path / "runs", "hotel", 1000, 0.20, [30.0])
+    # seed 1001 finished on another machine: only its record, committed in results/runs/
+    (tmp_path / "results" / "runs").mkdir(parents=True)
+    (tmp_path / "results" / "runs" / "hotel-paper-d-n1-e200-seed1001.json").write_text(
+        json.dumps({"aoe": 0.30, "aoe_std": 0.01, "foe": 0.6, "foe_std": 0.02, "epoch": 200,
+                    "protocol": "fake", "seed": 1001, "workdir": "elsewhere",
+                    "train_time_s": 60.0}))
+    argv = [*_isolated(tmp_path), "--scenes", "hotel", "--seeds", "1000,1001", "--runs",
+            str(tmp_path / "runs")]
+    table1.main([*argv, "--workdir", str(tmp_path / "mine")])
+    [mine] = json.loads((tmp_path / "mine" / "table1.json").read_text())
+    assert mine["seeds"] == [1000] and not (tmp_path / "results" / "table1.md").exists()
+
+    table1.main([*argv, "--publish"])
+    [published] = json.loads((tmp_path / "results" / "table1.json").read_text())
+    assert published["seeds"] == [1000, 1001] and published["aoe"] == pytest.approx(0.25)
+    assert "| hotel | 0.250 ± 0.050 |" in (tmp_path / "results" / "table1.md").read_text()
+    assert (tmp_path / "results" / "runs" / "hotel-paper-d-n1-e200-seed1000.json").is_file()
+
+
+def test_train_trains_what_runs_lacks_though_a_record_is_published_and_a_model_shipped(
+        tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(_common, "RESULTS", tmp_path / "results")
+    name = "eth-paper-d-n1-e1-seed1003"
+    (tmp_path / "results" / "runs").mkdir(parents=True)
+    (tmp_path / "results" / "runs" / f"{name}.json").write_text(json.dumps(
+        {"aoe": 9.0, "aoe_std": 0.0, "foe": 9.0, "foe_std": 0.0, "epoch": 1, "seed": 1003,
+         "protocol": "paper", "workdir": "elsewhere", "train_time_s": 1.0}))
+    monkeypatch.setattr(table1, "shipped_record", lambda *args: {   # as if one were shipped
+        "aoe": 8.0, "aoe_std": 0.0, "foe": 8.0, "foe_std": 0.0, "epoch": 1,
+        "protocol": "paper", "workdir": "gst_jax/pretrained/eth_d", "train_time_s": None})
+    trained, evaluated = [], []
+
+    def train_small(model_config, data_config, train_config, workdir):  # a smoke-sized run
+        trained.append(workdir)
+        _common.train(model_config, data_config, dataclasses.replace(
+            train_config, batch_size=8, max_train_windows=8), workdir)
+
+    def evaluate(workdir):          # stands in for the 20-run evaluation of the run's test split
+        evaluated.append(workdir)
+        (workdir / "eval" / "eth-paper-test-e1.json").parent.mkdir(exist_ok=True)
+        (workdir / "eval" / "eth-paper-test-e1.json").write_text(json.dumps(
+            {"aoe": 1.5, "aoe_std": 0.1, "foe": 3.0, "foe_std": 0.2, "cv_aoe": 1.0,
+             "cv_foe": 2.0, "epoch": 1, "pedestrians": 113, "protocol": "paper"}))
+    monkeypatch.setattr(table1, "train", train_small)
+    monkeypatch.setattr(table1, "evaluate", evaluate)
+
+    table1.main(["--train", "--scenes", "eth", "--epochs", "1", "--seeds", "1003"])
+    workdir = Path("runs") / name
+    assert trained == evaluated == [workdir]
+    assert [r["epoch"] for r in WorkDir(workdir).read_metrics()] == [1]
+    [row] = json.loads((tmp_path / "runs" / "table1" / "table1.json").read_text())
+    assert row["aoe"] == 1.5 and row["per_seed"]["1003"]["workdir"] == str(workdir)
+    assert json.loads((tmp_path / "results" / "runs" / f"{name}.json").read_text())["aoe"] == 9.0
+
+
+# docs/reproducing.md: the commands that regenerate the published tables from their records.
+PUBLISHED = [
+    (table1, ["--seeds", "1000,1001,1002"], "table1"),
+    (table1, ["--output", "gaussian", "--seeds", "1000,1001,1002"], "table1_p"),
+    (table1, ["--protocol", "loo"], "table1_loo"),
+    (crowd, [], "crowd"),
+    (crowd, ["--output", "gaussian"], "crowd_p"),
+    (schedules, [], "schedules"),
+]
+
+
+@pytest.mark.parametrize("script, flags, stem", PUBLISHED, ids=[p[2] for p in PUBLISHED])
+def test_the_published_tables_are_what_their_documented_command_writes(
+        script, flags, stem, tmp_path, monkeypatch):
+    """`python3 experiments/<script>.py FLAGS --publish`, run on a copy of results/ (from the
+    checkout, with its parked runs and without work directories, as after a fresh clone)."""
+    copy = tmp_path / "results"
+    shutil.copytree(ROOT / "results", copy)
+    monkeypatch.setattr(_common, "RESULTS", copy)
+    monkeypatch.setattr(schedules, "RESULTS", copy)
+    monkeypatch.chdir(ROOT)                          # parked/ as the commands find it
+    script.main([*flags, "--publish", "--runs", str(tmp_path / "runs")])
+    for suffix in (".md", ".json"):
+        assert (copy / f"{stem}{suffix}").read_bytes() == (ROOT / "results" / f"{stem}{suffix}"
+                                                           ).read_bytes(), f"{stem}{suffix}"
+    assert _contents(copy / "runs") == _contents(ROOT / "results" / "runs")
