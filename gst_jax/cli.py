@@ -13,17 +13,19 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from gst_jax.config import (DETECTION, EDGE_HEAD_CHOICES, PROTOCOLS, SCENES, SCHEDULES,
-                            TEMPORAL_MODELS, DataConfig, ModelConfig, TimeGrid, TrainConfig)
+from gst_jax.config import (DETECTION, EDGE_HEAD_CHOICES, FINE_TUNING, PROTOCOLS, SCENES,
+                            SCHEDULES, TEMPORAL_MODELS, DataConfig, ModelConfig, TimeGrid,
+                            TrainConfig)
 from gst_jax.data import data_name
 from gst_jax.data.protocols import bundled_or_local
-from gst_jax.errors import USER_ERRORS, DataError
+from gst_jax.data.readers import UNITS, parse_columns
+from gst_jax.errors import USER_ERRORS, DataError, Interrupted
+from gst_jax.io.interrupts import stops_end_the_process
 
 if TYPE_CHECKING:
     from gst_jax.parallel import Devices
 
 _TRAIN_DEFAULTS = TrainConfig()
-UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048}
 
 
 def positive_int(text: str) -> int:
@@ -83,35 +85,53 @@ def use_compilation_cache() -> None:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILATION_CACHE)
 
 
+# Seconds from a stop signal (Ctrl-C, SIGTERM) to the end of a command that has not stopped
+# by itself (its main thread inside an XLA compilation); a write in progress completes first.
+STOP_GRACE_S = 4.0
+
+
 def run(command: Callable[[argparse.Namespace], None], parser: argparse.ArgumentParser,
         argv: list[str] | None) -> None:
-    """Parse `argv` and run `command`; a user error ends the process with one line."""
+    """Parse `argv` and run `command`; a user error ends the process with one line, a stop
+    signal (Ctrl-C, SIGTERM) with one line and status 130."""
     args = parser.parse_args(argv)
     use_compilation_cache()
     warnings.formatwarning = lambda message, *_, **__: f"warning: {message}\n"
     try:
-        command(args)
+        with stops_end_the_process(STOP_GRACE_S):
+            command(args)
     except USER_ERRORS as error:
         raise SystemExit(f"error: {error}") from None
-    except KeyboardInterrupt:
-        raise SystemExit("interrupted; rerun the same command to resume") from None
+    except KeyboardInterrupt as interrupt:
+        # os._exit: the interpreter's shutdown with XLA's threads mid-work can hang and crash.
+        say(str(interrupt) if isinstance(interrupt, Interrupted) else "interrupted")
+        sys.stdout.flush()
+        os._exit(130)
     except BrokenPipeError:       # the reader of stdout left (`| head`): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         raise SystemExit(1) from None
+    except OSError as error:      # a full disk, a read-only folder: what, where, why
+        where = f"{error.filename}: " if error.filename else ""
+        raise SystemExit(f"error: {where}{error.strerror or error}") from None
 
 
-def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False) -> None:
-    """--scene, --protocol, --data-dir. of_run: the defaults are those of the model's run."""
+def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False,
+                   fine_tuning: bool = False) -> None:
+    """--scene, --protocol, --data-dir. of_run: the defaults are those of the model's run;
+    fine_tuning: the command fine-tunes with --init, which has a protocol of its own."""
     group = parser.add_argument_group("data")
     default = "the run's own" if of_run else None
+    protocol_default = default or "paper" + (
+        f"; {FINE_TUNING['protocol']} when fine-tuning with --init" if fine_tuning else "")
     group.add_argument("--scene", default=None if of_run else "eth", choices=SCENES,
                        help="dataset: an ETH/UCY scene, a TrajNet++ crowd, or crowd: all "
                             f"seven, each file split as in its scene (default: {default or 'eth'})")
-    group.add_argument("--protocol", default=None if of_run else "paper", choices=PROTOCOLS,
+    group.add_argument("--protocol", default=None if of_run or fine_tuning else "paper",
+                       choices=PROTOCOLS,
                        help="paper: the release's per-file temporal 80/20 split; paper-val: the "
                             "same with a validation set carved from the end of each file's "
                             "train windows; loo: leave-one-scene-out (ETH/UCY only) "
-                            f"(default: {default or 'paper'})")
+                            f"(default: {protocol_default})")
     group.add_argument("--data-dir", default=None,
                        help="folder holding eth_ucy/ and trajnetpp/ (default: "
                             f"{default or 'the bundled data/'})")
@@ -119,14 +139,14 @@ def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False) -> 
 
 
 def add_own_data_flags(group) -> None:
-    """--drop-off-grid, --data, --fps, --units: reading files, and your own files."""
+    """--drop-off-grid, --data, --fps, --units, --columns: reading files, and your own files."""
     group.add_argument("--drop-off-grid", action="store_true",
                        help="drop rows whose frame is off their file's frame grid (a warning "
                             "counts them) instead of refusing the file")
     group.add_argument("--data", default=None, metavar="PATH",
                        help="your own data instead of a bundled scene: a file, a folder or a "
-                            "glob of 'frame ped x y' text files or TrajNet++ ndjson (runs and "
-                            "labels take its name)")
+                            "glob of text files ('frame ped x y', or a tracker's CSV with a "
+                            "header) or TrajNet++ ndjson (runs and labels take its name)")
     group.add_argument("--fps", type=positive_float, default=None,
                        help="frame ids per second of --data (e.g. 10 for a 10 Hz tracker "
                             "numbering samples 0, 1, 2...); rates that are a multiple of the "
@@ -135,10 +155,26 @@ def add_own_data_flags(group) -> None:
                             "apart)")
     group.add_argument("--units", default="m", choices=tuple(UNITS),
                        help="unit of --data's coordinates (default: m)")
+    group.add_argument("--columns", type=column_map, default=None, metavar="F,ID,X,Y",
+                       help="which columns of --data's text files hold frame, pedestrian id, x "
+                            "and y: header names or numbers counted from 1, e.g. 1,2,8,9 for "
+                            "MOTChallenge's frame,id,bb_left,bb_top,bb_width,bb_height,conf,"
+                            "x,y,z (default: a header's frame, id/ped/track_id, x, y; else "
+                            "the four columns frame ped x y)")
+
+
+def column_map(text: str) -> str:
+    """An argparse type: --columns, checked, spaces removed ('frame, id,8,9' -> 'frame,id,8,9')."""
+    try:
+        parse_columns(text)
+    except DataError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix(f"--columns {text}: ")) from None
+    return ",".join(item.strip() for item in text.split(","))
 
 
 def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
-    """--split, --samples, --seed, --epoch: which windows a model predicts, and how."""
+    """--split, --samples, --seed, --epoch, --candidates: which windows a model predicts, and
+    how."""
     parser.add_argument("--split", default="test", choices=("test", "val", "train", "all"),
                         help="which split; all: every window (default: test)")
     parser.add_argument("--samples", type=positive_int, default=20,
@@ -147,6 +183,11 @@ def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default: 0)")
     parser.add_argument("--epoch", type=int, default=None,
                         help="checkpoint epoch (default: latest)")
+    parser.add_argument("--candidates", type=count, default=None, metavar="K",
+                        help="predict with each pedestrian's K nearest as its only candidate "
+                             "neighbours, for crowds of hundreds (docs/MODEL.md 2.4); 0 = the "
+                             "exact model; an evaluation with K is printed, not written "
+                             "(default: the model's own)")
 
 
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
@@ -183,6 +224,10 @@ def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool
                             "CrowdNav++'s model has 1)")
     group.add_argument("--lstm-dim", type=positive_int, default=ModelConfig.lstm_hidden,
                        help=f"the LSTM's hidden width (default: {ModelConfig.lstm_hidden})")
+    group.add_argument("--candidates", type=count, default=ModelConfig.candidates, metavar="K",
+                       help="each pedestrian's candidate neighbours: its K nearest at each step "
+                            "(itself included), for crowds of hundreds; 0 = everyone, the exact "
+                            "model (default: 0; docs/MODEL.md 2.4)")
     add_grid_flags(group)
 
 
@@ -205,16 +250,21 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
     d = _TRAIN_DEFAULTS
     group.add_argument("--epochs", type=positive_int, default=d.epochs,
                        help=f"epochs (default: {d.epochs})")
-    group.add_argument("--schedule", default=d.schedule, choices=SCHEDULES,
+    tuned = "" if sweep else "; {} when fine-tuning with --init"
+    group.add_argument("--schedule", default=d.schedule if sweep else None, choices=SCHEDULES,
                        help=f"paper: learning rate x{d.lr_decay} every {d.lr_decay_every} epochs; "
                             f"compressed: x{d.lr_decay} every epochs/4 (the paper's shape "
                             "fitted to --epochs; the same at 200). Both anneal tau "
-                            f"{d.tau_start} -> {d.tau_end} over the run (default: {d.schedule})")
+                            f"{d.tau_start} -> {d.tau_end} over the run. finetune: a constant "
+                            f"learning rate, tau held at {d.tau_end} (default: {d.schedule}"
+                            + tuned.format(FINE_TUNING["schedule"]) + ")")
     group.add_argument("--batch-size", type=positive_int, default=d.batch_size,
                        help=f"scenes averaged per optimiser step (default: {d.batch_size})")
-    group.add_argument("--learning-rate", type=positive_float, default=d.learning_rate,
+    group.add_argument("--learning-rate", type=positive_float,
+                       default=d.learning_rate if sweep else None,
                        help="initial Adam learning rate, decayed as --schedule says "
-                            f"(default: {d.learning_rate})")
+                            f"(default: {d.learning_rate}"
+                            + tuned.format(FINE_TUNING["learning_rate"]) + ")")
     if sweep:
         group.add_argument("--seed", type=int, default=d.seed,
                            help=f"first seed; also fixes the shared data order (default: {d.seed})")
@@ -230,7 +280,9 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
                            help="drop partially detected pedestrians (the paper's 'F' baseline)")
         group.add_argument("--init", default=None, metavar="MODEL",
                            help="fine-tune: start from this model's parameters (a work "
-                                "directory, SWEEP_DIR:MEMBER or pretrained:NAME)")
+                                "directory, SWEEP_DIR:MEMBER or pretrained:NAME); the epoch "
+                                "with the best validation AOE (the starting model's included) "
+                                "is kept")
         group.add_argument("--eval-every", type=count, default=d.eval_every,
                            help="epochs between validation AOE/FOE, with a protocol that has a "
                                 f"validation split (default: {d.eval_every}; 0 = never)")
@@ -285,8 +337,10 @@ def model_spec(spec: str | None) -> str | None:
     """A model name that means the same from any working directory (absolute paths)."""
     if spec is None or spec.startswith("pretrained:"):
         return spec
-    where, colon, member = spec.partition(":")
-    return str(Path(where).absolute()) + colon + member
+    if Path(spec).exists():                     # a path, ':' in its name or not
+        return str(Path(spec).absolute())
+    where, colon, member = spec.rpartition(":")
+    return str(Path(where).absolute()) + colon + member if colon else str(Path(spec).absolute())
 
 
 def parse_edge_heads(text: str) -> list[int]:
@@ -305,8 +359,10 @@ def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> Dat
     """The flags' data config; flags left at None keep `base`'s values (a run's own). Paths
     are stored absolute, so a run reads the same files from any working directory."""
     base = base or DataConfig()
+    protocol = args.protocol or (FINE_TUNING["protocol"] if getattr(args, "init", None)
+                                 else base.protocol)
     config = dataclasses.replace(
-        base, scene=args.scene or base.scene, protocol=args.protocol or base.protocol,
+        base, scene=args.scene or base.scene, protocol=protocol,
         data_dir=str(Path(args.data_dir).absolute()) if args.data_dir else base.data_dir,
         drop_off_grid=args.drop_off_grid or base.drop_off_grid)
     if args.data:
@@ -314,9 +370,10 @@ def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> Dat
         pattern = args.data if bundled_or_local(args.data) != Path(args.data) else str(
             Path(args.data).absolute())
         config = dataclasses.replace(config, scene=data_name(pattern), data=pattern,
-                                     fps=args.fps, scale=UNITS[args.units])
-    elif args.fps or args.units != "m":
-        raise DataError("--fps and --units describe your own files: give them with --data")
+                                     fps=args.fps, scale=UNITS[args.units], columns=args.columns)
+    elif args.fps or args.units != "m" or args.columns:
+        raise DataError("--fps, --units and --columns describe your own files: give them with "
+                        "--data")
     return config
 
 
@@ -325,7 +382,8 @@ def model_config(args: argparse.Namespace) -> ModelConfig:
     return ModelConfig(num_edge_heads=edge_heads, ghost=not args.no_ghost,
                        output=args.output, temporal=args.temporal, node_dim=args.node_dim,
                        edge_dim=2 * args.node_dim, encoder_layers=args.encoder_layers,
-                       lstm_hidden=args.lstm_dim, **dataclasses.asdict(time_grid(args)))
+                       lstm_hidden=args.lstm_dim, candidates=args.candidates,
+                       **dataclasses.asdict(time_grid(args)))
 
 
 def time_grid(args: argparse.Namespace) -> TimeGrid:
@@ -333,9 +391,13 @@ def time_grid(args: argparse.Namespace) -> TimeGrid:
 
 
 def train_config(args: argparse.Namespace) -> TrainConfig:
-    fields = dict(epochs=args.epochs, schedule=args.schedule, batch_size=args.batch_size,
-                  learning_rate=args.learning_rate, seed=args.seed, rotate=not args.no_rotate,
-                  checkpoint_every=args.checkpoint_every,
+    """The flags' TrainConfig; flags left at None take the paper's defaults, or fine-tuning's
+    (`FINE_TUNING`) with --init."""
+    defaults = FINE_TUNING if getattr(args, "init", None) else dataclasses.asdict(_TRAIN_DEFAULTS)
+    fields = dict(epochs=args.epochs, schedule=args.schedule or defaults["schedule"],
+                  batch_size=args.batch_size,
+                  learning_rate=args.learning_rate or defaults["learning_rate"], seed=args.seed,
+                  rotate=not args.no_rotate, checkpoint_every=args.checkpoint_every,
                   max_train_windows=args.max_train_windows)
     if isinstance(args.fully_detected_only, bool):        # a single run, not a sweep
         fields.update(fully_detected_only=args.fully_detected_only, eval_every=args.eval_every,

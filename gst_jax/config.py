@@ -23,7 +23,11 @@ PROTOCOLS = ("paper", "paper-val", "loo")
 # through every observed step (masked inputs, no held state); tcn: the release's readout.
 TEMPORAL_MODELS = ("lstm", "faster_lstm", "tcn")
 # Learning-rate and temperature schedules (gst_jax.training.schedules).
-SCHEDULES = ("paper", "compressed")
+SCHEDULES = ("paper", "compressed", "finetune")
+# What fine-tuning (`train --init MODEL`) changes unless told otherwise: a validation split to
+# select its epoch on, the model's end temperature and a learning rate ten times below the
+# paper's (docs/own-data.md, "Fine-tuning").
+FINE_TUNING = {"protocol": "paper-val", "schedule": "finetune", "learning_rate": 1e-4}
 # n, the number of edge heads; 0 = full connection (the paper's "F", no selector).
 EDGE_HEAD_CHOICES = (0, 1, 2, 4, 8, 16)
 # Which pedestrians a sweep observes (its --fully-detected-only): everyone (the paper's
@@ -81,12 +85,16 @@ class DataConfig(_FromDict):
       drop_off_grid: drop rows whose frame is off a file's grid (counted in a warning)
         instead of refusing the file.
       data: your own files instead of a bundled scene: an absolute path to a file, a folder
-        or a glob of `frame ped x y` text files or TrajNet++ ndjson.
+        or a glob of text files (`frame ped x y`, or CSV with a header) or TrajNet++ ndjson.
       fps: frame ids per second of `data` (25 for ETH/UCY's video frames, 10 for a 10 Hz
         tracker numbering its samples 0, 1, 2, ...); annotations at a multiple of the model's
         rate are resampled to it, others refused. None: a TrajNet++ file's own rate, else
         annotations taken to be one model step apart.
       scale: metres per unit of `data`'s coordinates.
+      columns: which columns of `data`'s text files hold frame, pedestrian id, x and y:
+        four comma-separated header names or column numbers counted from 1 (`--columns`,
+        e.g. "1,2,8,9" for MOTChallenge rows). None: a header's usual names (frame, id /
+        ped / track_id, x, y), else the four columns `frame ped x y`.
     """
 
     # Windows followed DataConfig's own obs_len / pred_len before they followed the model's.
@@ -101,6 +109,7 @@ class DataConfig(_FromDict):
     data: str | None = None
     fps: float | None = None
     scale: float = 1.0
+    columns: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,6 +138,11 @@ class ModelConfig(_FromDict):
         steps only, all predicted steps at once).
       step_s / obs_len / pred_len: the model's time grid (`grid`): steps observed and
         predicted, step_s seconds apart.
+      candidates: k, each target's candidate neighbourhood (docs/MODEL.md 2.4): 0 = exact,
+        every valid person is a candidate; k > 0 = only the k nearest valid people at that
+        step (itself included) and the ghost: the selector and the encoder's attention then
+        grow as N k^2 and N k instead of N^3 and N^2. No parameter depends on it, so a model
+        trained exactly can predict with candidates (`dataclasses.replace`) and vice versa.
     """
 
     node_dim: int = 32
@@ -146,6 +160,7 @@ class ModelConfig(_FromDict):
     step_s: float = TimeGrid.step_s
     obs_len: int = TimeGrid.obs_len
     pred_len: int = TimeGrid.pred_len
+    candidates: int = 0
 
     def __post_init__(self):
         if self.node_dim % self.encoder_heads:
@@ -159,6 +174,8 @@ class ModelConfig(_FromDict):
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"temporal model {self.temporal!r}: expected one of "
                              f"{', '.join(TEMPORAL_MODELS)}")
+        if self.candidates < 0:
+            raise ValueError(f"candidates must be 0 (every person) or more, got {self.candidates}")
 
     @property
     def recurrent(self) -> bool:
@@ -193,8 +210,9 @@ class TrainConfig(_FromDict):
     Attributes:
       epochs: number of epochs (200).
       schedule: 'paper' (Adam x lr_decay every lr_decay_every epochs, tau annealed over the
-        run) or 'compressed' (the same shape fitted to `epochs`: x lr_decay every epochs / 4;
-        equal to 'paper' at 200 epochs). See gst_jax.training.schedules.
+        run), 'compressed' (the same shape fitted to `epochs`: x lr_decay every epochs / 4;
+        equal to 'paper' at 200 epochs) or 'finetune' (the learning rate constant, tau held at
+        tau_end, where a trained model ended). See gst_jax.training.schedules.
       batch_size: scenes averaged per optimiser step (16).
       learning_rate: Adam's initial learning rate (1e-3).
       lr_decay / lr_decay_every: multiply the learning rate by 0.3 every 50 epochs.

@@ -6,6 +6,7 @@ all its environments at once. This module loads the same checkpoints and answers
 call with the same numbers (docs/MODEL.md 6):
 
     predictor = gst_jax.crowdnav.load("gst_updated/results/<run>/sj")   # no torch needed
+    predictor = gst_jax.crowdnav.load("pretrained:crowdnav_sj")   # that checkpoint, shipped
     output_traj, output_mask = predictor(input_traj, input_mask)
 
 input_traj (n_env, N, obs_len, 2) positions, -999 where a human is not detected;
@@ -49,7 +50,7 @@ from gst_jax.config import EVAL_TAU, ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.errors import DataError
 from gst_jax.interop import load_state_dict, params_from_torch
-from gst_jax.model import Controls
+from gst_jax.model import Controls, weights
 from gst_jax.rollout import rollout
 from gst_jax.safe_pickle import read_args
 
@@ -188,11 +189,33 @@ def from_state_dict(state_dict: Mapping[str, Any], args: Mapping[str, Any], *,
     return Predictor(jax.tree.map(jnp.asarray, params), config, non_finite)
 
 
+def from_run(run, *, non_finite: Literal["raise", "undetected"] = "raise") -> Predictor:
+    """A predictor from a gst_jax model of CrowdNav++'s kind (a `gst_jax.runs.Run`: its
+    `model_config` and `params`): full connection (no edge selector), the Gaussian output, an
+    LSTM. Refuses another kind in one line."""
+    return _predictor(run.name, run.model_config, run.params, non_finite)
+
+
+def _predictor(name: str, config: ModelConfig, params, non_finite) -> Predictor:
+    if config.selects_edges or config.output != "gaussian" or not config.recurrent:
+        raise ValueError(f"{name}: CrowdNav++'s predictor is a full-connection (n = 0) GST (P) "
+                         f"with an LSTM; this model has n = {config.num_edge_heads}, output "
+                         f"{config.output!r}, temporal {config.temporal!r}")
+    return Predictor(params, config, non_finite)
+
+
 def load(load_path: str | Path, *, step_s: float = CROWDNAV_STEP_S,
          non_finite: Literal["raise", "undetected"] = "raise") -> Predictor:
     """A predictor from a CrowdNav++ checkpoint folder (`<load_path>/checkpoint/args.pickle`
     and `epoch_<num_epochs>.pt`, as CrowdNav++ reads them), read by `gst_jax.safe_pickle`:
-    no torch needed, and a file that would run code is refused."""
+    no torch needed, and a file that would run code is refused. Or from a shipped model,
+    `pretrained:crowdnav_sj` (CrowdNav++'s `..._seed1000/sj` checkpoint, converted) or
+    `pretrained:crowdnav_sj_rand` (`..._seed1000_rand/sj`), or any weights folder of
+    `gst_jax.model.weights` (`python -m gst_jax.pretrained export ... --out DIR`), whose
+    config.json gives the time step (`step_s` is for CrowdNav++'s folders)."""
+    if weights.is_weights(load_path):
+        loaded = weights.load(load_path)
+        return _predictor(str(load_path), loaded.model_config, loaded.params, non_finite)
     folder = Path(load_path) / "checkpoint"
     args = read_args(folder / "args.pickle")
     if not isinstance(args.get("num_epochs"), int):

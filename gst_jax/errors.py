@@ -18,4 +18,9 @@ class DeviceError(ValueError):
     """Devices asked for that this machine or these processes do not have."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """A stop signal (Ctrl-C, SIGTERM) ended the work at a safe point; the message says what
+    was saved and what rerunning the command does."""
+
+
 USER_ERRORS = (DataError, RunError, NonFiniteError, DeviceError)

@@ -1,10 +1,10 @@
 """Evaluate a trained model with the paper's protocol: `python -m gst_jax.evaluate MODEL`.
 
-MODEL is a work directory (or one of its checkpoints), SWEEP_DIR:MEMBER or pretrained:NAME.
-K = 20 hard-sampled predictions of every window are the paper's 20 runs: AOE and FOE (mean
-over runs, with their spread) on fully detected pedestrians beside best-of-K, KDE NLL,
-collisions, TrajNet++'s Col-I / Col-II and constant velocity on the same pedestrians, written
-to <workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json and .md.
+MODEL is a work directory (or one of its checkpoints), SWEEP_DIR:MEMBER or pretrained:NAME. K = 20
+hard-sampled predictions of every window are the paper's 20 runs: AOE and FOE (mean over runs, with
+their spread) on fully detected pedestrians beside best-of-K, KDE NLL, collisions, TrajNet++'s
+Col-I / Col-II and constant velocity on the same pedestrians, written to
+<workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json and .md.
 """
 
 from __future__ import annotations
@@ -48,9 +48,9 @@ def evaluate(args) -> None:
                                           with_kde=not args.no_kde)
     else:
         devices = cli.devices(args)             # first: processes join before jax is used
-        run = load_model(args.model, args.epoch)
-        # A quick look (--max-windows) is printed, not kept.
-        out = None if args.max_windows else WorkDir(args.workdir) if args.workdir else run.workdir
+        run = load_model(args.model, args.epoch).with_candidates(args.candidates)
+        out = None if args.max_windows or args.candidates is not None else (  # printed only
+            WorkDir(args.workdir) if args.workdir else run.workdir)
         if out is not None:
             out.check_writable()
         data_config = cli.data_config(args, base=run.data_config)

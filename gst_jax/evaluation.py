@@ -23,7 +23,7 @@ from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TimeGrid
 from gst_jax.errors import DataError
 from gst_jax.model import Controls
 from gst_jax.parallel import Devices
-from gst_jax.predict import make_predict
+from gst_jax.predict import DEFAULT_MEMORY_BUDGET, make_predict
 from gst_jax.prediction_files import PredictedBatch, read_predictions, write_predictions
 from gst_jax.progress import Progress
 
@@ -52,7 +52,9 @@ def predict_windows(params, key: jax.Array, window_set: data.WindowSet, config: 
                     num_samples: int = 20,
                     fully_detected_only: bool = False, controls: Controls | None = None,
                     predict=None, progress: Progress | None = None,
-                    devices: Devices | None = None) -> Iterator[PredictedBatch]:
+                    devices: Devices | None = None,
+                    memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET
+                    ) -> Iterator[PredictedBatch]:
     """K sampled futures of every window, batch by batch (`data.evaluation_batches`).
 
     Sample k of a window depends on the key, k and the window's index only (`noise`), not
@@ -62,9 +64,11 @@ def predict_windows(params, key: jax.Array, window_set: data.WindowSet, config: 
     way). controls: traced n / ghost overriding the config's (sweeps), at tau = EVAL_TAU.
     predict: a `make_predict(config, num_samples, with_graph=False)` to reuse across calls
     (one compile per bucket for many members). progress: reports the windows predicted, with
-    an ETA. devices: the scenes of each batch are split over them.
+    an ETA. devices: the scenes of each batch are split over them. memory_budget_bytes: what
+    one batch's program may use, without `predict` (`make_predict`).
     """
-    predict = predict or make_predict(config, num_samples=num_samples, with_graph=False)
+    predict = predict or make_predict(config, num_samples=num_samples, with_graph=False,
+                                      memory_budget_bytes=memory_budget_bytes)
     if devices is not None:
         params, key, controls = devices.replicate((params, key, controls))
     started, done = time.perf_counter(), 0
@@ -203,14 +207,16 @@ def evaluate_run(run, data_config: DataConfig, split: str, *, num_samples: int =
 
 def write_run_predictions(run, data_config: DataConfig, split: str, path: Path, *,
                           num_samples: int = 20, seed: int = 0,
-                          progress: Progress | None = None) -> int:
+                          progress: Progress | None = None,
+                          memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET) -> int:
     """Write K sampled futures of every window of the split to a TrajNet++ file (the samples
-    `evaluate_run` scores with the same seed); returns the rows written."""
+    `evaluate_run` scores with the same seed); returns the rows written. memory_budget_bytes:
+    see `make_predict`."""
     window_set = _split_windows(data_config, split, run.model_config.grid)
     predicted = predict_windows(run.params, jax.random.key(seed), window_set, run.model_config,
                                 num_samples=num_samples,
                                 fully_detected_only=run.train_config.fully_detected_only,
-                                progress=progress)
+                                progress=progress, memory_budget_bytes=memory_budget_bytes)
     return write_predictions(path, window_set, predicted, run.model_config.grid)
 
 

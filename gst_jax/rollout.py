@@ -84,15 +84,23 @@ def rollout(params, key: jax.Array, batch: SceneBatch, config: ModelConfig, cont
 
 
 def observed_edge_probabilities(params, batch: SceneBatch, config: ModelConfig,
-                                controls: Controls) -> jax.Array:
+                                controls: Controls, *, steps_at_once: int | None = None
+                                ) -> jax.Array:
     """Edge probabilities of the observed steps without dropout, (B, T_obs, N, G, N+1).
 
     They depend on the observations only, not on the noise: K samples of one batch need them
-    once (8 of the 19 selector calls of a rollout).
+    once (8 of the 19 selector calls of a rollout). steps_at_once: select that many observed
+    steps per call, in a loop (None: all at once); the selector's per-target attention is
+    (N, N+1, N+1) a step, so for large crowds this bounds memory.
     """
+    def select(inputs):
+        return GST(config).apply({"params": params}, *inputs, controls, deterministic=True,
+                                 method=GST.select)
+
     def one_window(window):
-        return GST(config).apply({"params": params}, *_observed_inputs(window, config.obs_len),
-                                 controls, deterministic=True, method=GST.select)
+        inputs = _observed_inputs(window, config.obs_len)
+        return (select(inputs) if steps_at_once is None
+                else jax.lax.map(select, inputs, batch_size=steps_at_once))
 
     return jax.vmap(one_window)(batch)
 

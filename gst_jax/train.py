@@ -20,7 +20,7 @@ from gst_jax.training.loop import fit
 
 def main(argv: list[str] | None = None) -> None:
     parser = cli.parser("gst_jax.train", __doc__)
-    cli.add_data_flags(parser)
+    cli.add_data_flags(parser, fine_tuning=True)
     cli.add_model_flags(parser)
     cli.add_train_flags(parser)
     cli.add_device_flags(parser)
@@ -38,10 +38,28 @@ def train(args) -> None:
     summary = fit(model_config, data_config, train_config, workdir, devices=cli.devices(args))
     if args.json:
         print(json.dumps(summary, indent=2))
-    else:
-        print(f"trained {summary['epochs']} epochs on {summary['train_windows']} windows in "
-              f"{summary['wall_time_s']:.0f} s; final loss {summary['final_loss']:.4f}; "
-              f"evaluate with: python -m gst_jax.evaluate {workdir}")
+        return
+    print(f"trained {summary['epochs']} epochs on {summary['train_windows']} windows in "
+          f"{summary['wall_time_s']:.0f} s; final loss {summary['final_loss']:.4f}; "
+          f"evaluate with: python -m gst_jax.evaluate {workdir}")
+    if "fine_tuning" in summary:
+        print(format_fine_tuning(summary["fine_tuning"]))
+
+
+def format_fine_tuning(report: dict) -> str:
+    """Which epoch a fine-tuning kept, and the test windows' AOE/FOE of it, of the model it
+    started from and of constant velocity."""
+    epoch = report["selected_epoch"]
+    kept = f"epoch {epoch}" if epoch else f"the starting model ({report['from']}): no epoch"
+    lines = [f"kept {kept}" + (" improved" if not epoch else "")
+             + f" on validation AOE ({report['val_aoe']:.3f} m, {report['val_windows']} windows)"]
+    if "test" in report:
+        test = report["test"]
+        lines.append(f"test split, {test['windows']} windows, 20 runs: AOE / FOE (m)")
+        for name, key in ((f"fine-tuned (epoch {epoch})", "tuned"), (report["from"], "start"),
+                          ("constant velocity", "constant_velocity")):
+            lines.append(f"  {name:32s} {test[key]['aoe']:.3f} / {test[key]['foe']:.3f}")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

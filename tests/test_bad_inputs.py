@@ -98,6 +98,73 @@ def test_bytes_that_are_not_utf8_are_refused_with_their_line(tmp_path, name, con
         data.read_tracks(path)
 
 
+def test_deeply_nested_ndjson_brackets_are_refused_with_their_line(tmp_path):
+    good = '{"track": {"f": 0, "p": 2, "x": 0.0, "y": 0.0}}'
+    path = _write(tmp_path / "deep.ndjson", [good, "[" * 100_000])
+    with pytest.raises(DataError, match=rf"^{path}:2: not valid JSON \(nested too deeply\)$"):
+        data.read_tracks(path)
+
+
+# --- trackers' CSV files and --columns --------------------------------------------------------
+
+MOT_HEADER = "frame,id,bb_left,bb_top,bb_width,bb_height,conf,x,y,z"
+MOT_ROW = "{f},1,-1,-1,-1,-1,1,{x},0.5,0"
+
+
+@pytest.mark.parametrize("lines, columns, problem", [
+    ([MOT_HEADER, MOT_ROW.format(f=10, x=1.0)], "frame,ped,x,y",
+     "1: the header (frame, id, bb_left, bb_top, bb_width, bb_height, conf, x, y, z) has no "
+     "column 'ped'"),
+    (["time,who,x,y", "0,1,0.0,0.5"], None,
+     "1: the header (time, who, x, y) names no frame column (frame / frame_id); say which "
+     "columns hold frame, id, x, y with --columns (e.g. --columns frame,id,x,y or 1,2,8,9)"),
+    ([MOT_HEADER, MOT_ROW.format(f=10, x=1.0), "20,1,-1,-1,-1"], None,
+     "3: expected 10 columns as line 1 has (frame 1, pedestrian id 2, x 8, y 9), found 5: "
+     "'20,1,-1,-1,-1'"),
+    ([MOT_HEADER, MOT_ROW.format(f=10, x=1.0), MOT_ROW.format(f=20, x="1,5")], "1,2,8,9",
+     "3: expected 10 columns as line 1 has (frame 1, pedestrian id 2, x 8, y 9), found 11: "
+     "'20,1,-1,-1,-1,-1,1,1,5,0.5,0'"),
+    ([MOT_HEADER, MOT_ROW.format(f=10, x=1.0), MOT_ROW.format(f=20, x="n/a")], None,
+     "3: x is not a number: 'n/a'"),
+    ([MOT_ROW.format(f=10, x=1.0)], "1,2,8,11",
+     "1: --columns 1,2,8,11 names column 11, but the line has 10: "
+     "'10,1,-1,-1,-1,-1,1,1.0,0.5,0'"),
+    (["0,1,0.0,0.5", "10,1,0.5,0.5"], "frame,id,x,y",
+     "1: --columns names the column 'frame', but the file has no header line (its first line "
+     "holds numbers); number the columns from 1 instead"),
+    ([MOT_ROW.format(f=10, x=1.0)], None,
+     "1: expected 4 columns (frame ped x y), found 10: '10,1,-1,-1,-1,-1,1,1.0,0.5,0'; a file "
+     "with other columns names them with --columns (e.g. --columns 1,2,8,9)"),
+])
+def test_bad_csv_files_are_refused_with_their_line(tmp_path, lines, columns, problem):
+    path = _write(tmp_path / "tracker.csv", lines)
+    with pytest.raises(DataError) as error:
+        data.read_tracks(path, columns=columns)
+    assert str(error.value) == f"{path}:{problem}"
+
+
+@pytest.mark.parametrize("columns, problem", [
+    ("1,2,8", "expected 4 comma-separated columns"),
+    ("0,1,7,8", "columns are numbered from 1, got 0"),
+    ("1,2,8,8", "names a column twice"),
+])
+def test_bad_column_maps_are_refused(tmp_path, columns, problem):
+    path = _write(tmp_path / "tracker.csv", [MOT_HEADER, MOT_ROW.format(f=10, x=1.0)])
+    with pytest.raises(DataError, match=problem):
+        data.read_tracks(path, columns=columns)
+    assert problem in _one_line_error(_command("gst_jax.data", "stats", "--data", str(path),
+                                               "--columns", columns))
+
+
+def test_columns_for_an_ndjson_file_and_without_data_are_refused(tmp_path):
+    path = _write(tmp_path / "crowd.ndjson", ['{"track": {"f": 0, "p": 2, "x": 0.0, "y": 0.0}}'])
+    with pytest.raises(DataError, match=rf"^{path}: --columns 1,2,3,4 names the columns of text "
+                                        r"files; a TrajNet\+\+ file's are its keys f, p, x, y$"):
+        data.read_tracks(path, columns="1,2,3,4")
+    assert _one_line_error(_command("gst_jax.data", "stats", "--columns", "1,2,3,4")) == (
+        "error: --fps, --units and --columns describe your own files: give them with --data")
+
+
 # --- coordinates and ids that float32 / int64 cannot hold ------------------------------------
 
 def test_utm_like_coordinates_keep_their_millimetres(tmp_path):

@@ -34,25 +34,6 @@ OWN_INSTALL = re.compile(
     r"""python3? -m pip install (-e )?(\.|"\.\[[\w,]+\]"|'\.\[[\w,]+\]')(?=\s|$)""")
 PRINTS = re.compile(r"#\s*prints:\s*(.+?)\s*$")
 
-# Blocks that do not run yet, of pages their authors are rewriting now (docs/own-data.md,
-# docs/planner.md): (page, start of the block's first line) -> why. Not run; empty it as
-# they land.
-PENDING = {
-    ("docs/own-data.md", "python3 -m gst_jax.data stats --data data/samples/crowd_10hz.txt"):
-        "fine-tunes 20 epochs (6 min on the loaded 2-core VM): mark it an excerpt or shrink it",
-    ("docs/own-data.md", "python3 experiments/make_sim_crowds.py --out DIR "):
-        "writes a folder named DIR; 57 s on the loaded 2-core VM: mark it an excerpt or shrink it",
-    ("docs/own-data.md", "python3 experiments/make_sim_crowds.py --out runs/sim_crowds "):
-        "then trains 200 epochs (no --epochs): mark it an excerpt",
-    ("docs/planner.md", "import jax, numpy as np, gst_jax"):
-        "`observed_xy` is not defined",
-    ("docs/planner.md", "from gst_jax import crowdnav"):
-        "needs a CrowdNav++ checkpoint folder and `input_traj`, `input_mask`: an excerpt",
-    ("docs/planner.md", "python3 experiments/make_sim_crowds.py --out runs/sim_crowds "):
-        "then trains 100 epochs: mark it an excerpt",
-}
-
-
 @dataclass(frozen=True)
 class Block:
     page: str          # relative to the checkout
@@ -65,15 +46,6 @@ class Block:
     def where(self) -> str:
         return f"{self.page}:{self.line}"
 
-    @property
-    def first_line(self) -> str:
-        return next((line.strip() for line in self.code.splitlines() if line.strip()), "")
-
-    @property
-    def pending(self) -> str | None:
-        """Why the block is in PENDING, or None."""
-        return next((why for (page, start), why in PENDING.items()
-                     if page == self.page and self.first_line.startswith(start)), None)
 
 
 def blocks(path: Path) -> list[Block]:
@@ -154,8 +126,6 @@ def test_every_code_block_of_the_docs_runs_or_is_marked_an_excerpt(block, ran):
                                     text=True)
             assert parsed.returncode == 0, f"{block.where}: {parsed.stderr}"
         return
-    if block.pending is not None:
-        pytest.skip(f"pending: {block.pending}")
     try:
         result, _ = ran(block)
     except subprocess.TimeoutExpired:
@@ -182,10 +152,6 @@ def test_the_docs_show_commands_only_in_blocks_that_run_or_are_excerpts():
         markers = sum(line.strip() == EXCERPT for line in lines)
         marked = sum(block.excerpt for block in blocks(page))
         assert markers == marked, f"{page.name}: an {EXCERPT} marker not before a block"
-    named = {(page, start) for page, start in PENDING for block in CODE if not block.excerpt
-             and block.page == page and block.first_line.startswith(start)}
-    stale = sorted(set(PENDING) - named)
-    assert not stale, f"PENDING names blocks that are gone or now excerpts: {stale}"
 
 
 def test_the_quick_start_prints_the_table_the_readme_shows(ran):

@@ -6,14 +6,15 @@ import dataclasses
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from gst_jax import data
-from gst_jax.config import DataConfig, ModelConfig, TrainConfig
-from gst_jax.errors import RunError
+from gst_jax.config import DataConfig, ModelConfig, TimeGrid, TrainConfig
+from gst_jax.errors import DataError, RunError
 from gst_jax.evaluation import evaluate_run
 from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_model, load_run
@@ -114,3 +115,229 @@ def test_fine_tuning_starts_from_the_given_parameters(tmp_path, at_model_rate):
         fit(ModelConfig(temporal="tcn"), config, train_config, tmp_path / "tcn")
     assert not (tmp_path / "tcn").exists()
     assert WorkDir(tmp_path / "tuned").read_metrics()[0]["epoch"] == 1
+
+
+def test_fine_tuning_selects_its_epoch_on_validation_and_reports_beside_the_start(tmp_path):
+    """`train --init`: a validation split carved from the training data, a constant small
+    learning rate at the model's end temperature, the epoch (0 = the start) of the best
+    validation AOE kept in selected/ and read by every command, and the kept model, the
+    starting one and constant velocity scored on the same test windows."""
+    workdir = tmp_path / "tuned"
+    trained = subprocess.run(
+        [sys.executable, "-m", "gst_jax.train", "--data", str(SAMPLE), "--fps", "10", "--units",
+         "cm", "--init", "pretrained:hotel_d", "--epochs", "2", "--workdir", str(workdir),
+         "--json"], capture_output=True, text=True, timeout=900)
+    assert trained.returncode == 0, trained.stderr
+    summary = json.loads(trained.stdout)
+    config = summary["config"]
+    assert config["data"]["protocol"] == "paper-val"
+    assert (config["train"]["schedule"], config["train"]["learning_rate"]) == ("finetune", 1e-4)
+    records = WorkDir(workdir).read_metrics()
+    assert [r["tau"] for r in records] == pytest.approx([0.03, 0.03])
+    report = summary["fine_tuning"]
+    kept = report["selected_epoch"]
+    assert kept == records[-1]["selected_epoch"] and kept in (0, 1, 2)
+    if kept:
+        assert report["val_aoe"] == min(r["val_aoe"] for r in records)
+    run = load_model(str(workdir))
+    assert run.epoch == kept
+    data_config = DataConfig.from_dict(config["data"])
+    start = evaluate_run(load_model("pretrained:hotel_d"), data_config, "test", with_kde=False)
+    tuned = evaluate_run(run, data_config, "test", with_kde=False)
+    test = report["test"]
+    assert test["windows"] == start["windows"] == 8
+    assert test["start"] == {"aoe": start["aoe"], "foe": start["foe"]}
+    assert test["tuned"] == {"aoe": tuned["aoe"], "foe": tuned["foe"]}
+    assert test["constant_velocity"] == {"aoe": start["cv_aoe"], "foe": start["cv_foe"]}
+
+
+# --- trackers' CSV files: a header, --columns ----------------------------------------------
+
+MOT_SAMPLE = SAMPLE.with_name("crowd_mot.csv")
+
+
+def _same_windows(a: data.WindowSet, b: data.WindowSet) -> None:
+    assert len(a) == len(b) > 0
+    for x, y in zip(a.windows, b.windows):
+        np.testing.assert_allclose(x.positions, y.positions, rtol=0, atol=1e-5)
+        np.testing.assert_array_equal(x.position_mask, y.position_mask)
+
+
+@pytest.mark.parametrize("columns", [None, "1,2,8,9", "frame,id,x,y", "FRAME, ID, 8, y"])
+def test_a_motchallenge_csv_reads_as_the_same_data_in_frame_ped_x_y(columns):
+    """crowd_mot.csv is crowd_10hz.txt at 2.5 Hz in metres, as MOTChallenge rows under a
+    header: its frame, id, x, y are found by name, or by --columns (names or numbers)."""
+    mot = DataConfig(scene="crowd_mot", data=str(MOT_SAMPLE), fps=10, columns=columns)
+    _same_windows(data.load_split(mot, "all"), data.load_split(_configs(SAMPLE)[0], "all"))
+
+
+@pytest.mark.parametrize("header, separator", [
+    ("frame,id,x,y", ","), ("frame ped x y", " "), ("Frame,Track_ID,conf,X,Y", ","),
+    ("frame_id\tpedestrian_id\tx\ty", "\t"), (None, ","),
+])
+def test_headers_with_the_usual_names_and_csv_without_one_need_no_flag(tmp_path, header,
+                                                                        separator):
+    rows = [(f, p, 0.5 * f / 10 + p, 0.25 * p) for f in range(0, 300, 10) for p in (1, 2, 3)]
+    bare = tmp_path / "bare.txt"
+    bare.write_text("".join(f"{f} {p} {x} {y}\n" for f, p, x, y in rows))
+    conf = header is not None and "conf" in header
+    lines = [separator.join(map(str, (f, p, *((0.9,) if conf else ()), x, y)))
+             for f, p, x, y in rows]
+    path = tmp_path / "tracker.csv"
+    path.write_text("\n".join(([header] if header else []) + lines) + "\n")
+    ours, expected = data.read_tracks(path), data.read_tracks(bare)
+    for name in ("frames", "pedestrians", "xy"):
+        np.testing.assert_array_equal(getattr(ours, name), getattr(expected, name))
+
+
+def test_folders_and_globs_of_own_data_include_csv_files(tmp_path):
+    (tmp_path / "a.csv").write_text(MOT_SAMPLE.read_text())
+    assert data.data_files(str(tmp_path)) == [tmp_path / "a.csv"]
+
+
+def _parsed(*argv: str, base: DataConfig | None = None) -> DataConfig:
+    import argparse
+
+    from gst_jax import cli
+
+    parser = argparse.ArgumentParser()
+    cli.add_data_flags(parser, of_run=base is not None)
+    return cli.data_config(parser.parse_args(argv), base)
+
+
+def test_columns_are_stored_in_the_run_and_read_the_same_way_again():
+    config = _parsed("--data", str(MOT_SAMPLE), "--fps", "10", "--columns", "1, 2,8,9")
+    assert config.columns == "1,2,8,9"
+    assert DataConfig.from_dict(json.loads(json.dumps(dataclasses.asdict(config)))) == config
+    assert _parsed("--protocol", "paper", base=config) == config     # a trained run's own
+    with pytest.raises(SystemExit):                    # argparse: exit 2 with one line
+        _parsed("--data", str(MOT_SAMPLE), "--columns", "1,2,8")
+
+
+def test_a_run_config_written_before_columns_existed_is_the_same_run():
+    from gst_jax.io.workdir import run_config, same_run
+
+    new = run_config(ModelConfig(), DataConfig(scene="own", data="/x/own.txt"), TrainConfig())
+    old = json.loads(json.dumps(new))
+    del old["data"]["columns"]
+    assert DataConfig.from_dict(old["data"]) == DataConfig(scene="own", data="/x/own.txt")
+    assert same_run(old, new) and same_run(new, old)
+
+
+@pytest.mark.parametrize("command", [
+    ["gst_jax.train"], ["gst_jax.evaluate"], ["gst_jax.predict"], ["gst_jax.plot", "scene"],
+    ["gst_jax.sweep"], ["gst_jax.data", "stats"],
+])
+def test_every_command_that_takes_data_takes_columns(capsys, command):
+    import importlib
+
+    name = command[0] if command[0] in ("gst_jax.train", "gst_jax.evaluate", "gst_jax.plot",
+                                        "gst_jax.sweep") else command[0] + ".__main__"
+    with pytest.raises(SystemExit) as exit_:
+        importlib.import_module(name).main([*command[1:], "--help"])
+    help_text = capsys.readouterr().out
+    assert exit_.value.code == 0 and "--data PATH" in help_text and "--columns F,ID,X,Y" in help_text
+
+
+def test_the_stats_command_reads_a_mot_file_by_column_numbers():
+    def stats(*args: str) -> dict:
+        result = _command("gst_jax.data", "stats", "--json", *args)
+        assert result.returncode == 0, result.stderr
+        return next(iter(json.loads(result.stdout)["scenes"].values()))
+
+    assert (stats("--data", str(MOT_SAMPLE), "--fps", "10", "--columns", "1,2,8,9")
+            == stats("--data", str(SAMPLE), "--fps", "10", "--units", "cm"))
+
+
+# --- walking speeds: a wrong --units or --fps -----------------------------------------------
+
+def _scaled_sample(path: Path, factor: float) -> Path:
+    rows = np.loadtxt(SAMPLE)
+    path.write_text("".join(f"{int(f)} {int(p)} {float(x) * factor!r} {float(y) * factor!r}\n"
+                            for f, p, x, y in rows))
+    return path
+
+
+def test_coordinates_a_billion_times_too_large_are_refused_in_one_line(tmp_path):
+    path = _scaled_sample(tmp_path / "huge.txt", 1e9 / 100)        # metres x 1e9
+    result = _command("gst_jax.data", "stats", "--data", str(path), "--fps", "10")
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"error: {path}: its people move at a median 1.13e+09 m/s (read in m, frame ids at 10 "
+        "per second), which no pedestrian does; no --units makes that a walking speed: check "
+        "the coordinates, and --fps (frame ids per second: a wrong rate scales every speed)"]
+
+
+def test_centimetres_read_as_metres_are_refused_with_the_units_that_fix_them():
+    config = DataConfig(scene="crowd_10hz", data=str(SAMPLE), fps=10)           # no --units cm
+    with pytest.raises(DataError, match=rf"^{SAMPLE}: its people move at a median 113 m/s "
+                                        r"\(read in m, frame ids at 10 per second\), which no "
+                                        r"pedestrian does; in cm it would be 1\.1 m/s: add "
+                                        r"--units cm$"):
+        data.load_split(config, "train")
+
+
+def test_metres_read_as_centimetres_are_warned_about(tmp_path):
+    path = _scaled_sample(tmp_path / "metres.txt", 1 / 100)
+    config = DataConfig(scene="metres", data=str(path), fps=10, scale=0.01)
+    with pytest.warns(UserWarning, match=r"90% of its steps are slower than 0\.0142 m/s "
+                                         r"\(median 0\.0113 m/s, read in cm, frame ids at 10 per "
+                                         r"second\), slow for pedestrians; in m it would be "
+                                         r"1\.1 m/s: use --units m"):
+        assert len(data.load_split(config, "train")) == 33
+
+
+def test_the_bundled_scenes_and_samples_pass_the_speed_check_silently():
+    from gst_jax.config import CROWD_SCENES
+    from gst_jax.data import protocols
+
+    protocols._tracks.cache_clear()          # a check warns once per file: start afresh
+    protocols._cut.cache_clear()
+    configs = [(DataConfig(scene=scene), TimeGrid()) for scene in CROWD_SCENES]
+    configs += [(_configs(SAMPLE)[0], TimeGrid()),
+                (DataConfig(scene="crowd_mot", data=str(MOT_SAMPLE), fps=10), TimeGrid()),
+                (DataConfig(scene="sim", data=str(SAMPLE.parent / "sim_crowds"), fps=4),
+                 TimeGrid(step_s=0.25, obs_len=5, pred_len=5))]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for config, grid in configs:
+            assert len(data.load_split(config, "all", grid)) > 0, config.scene
+
+
+# --- files without windows -----------------------------------------------------------------
+
+def test_a_file_without_windows_is_explained_by_its_longest_track(tmp_path):
+    path = tmp_path / "short.txt"        # two people seen 10 steps, one of them 6
+    path.write_text("".join(f"{f} {p} {0.05 * f + p:.3f} {0.3 * p:.3f}\n"
+                            for p, steps in ((1, 10), (2, 6)) for f in range(0, 10 * steps, 10)))
+    config = DataConfig(scene="short", data=str(path))
+    window_set = data.load_split(config, "train")
+    assert not len(window_set)
+    assert data.no_windows_message(window_set, config, "train") == (
+        f"no training windows in short (paper protocol): none of {path} gives one; a window "
+        "needs someone detected at 20 steps of 0.4 s (8 s) in a row (8 observed, 12 "
+        "predicted), and the longest track is 10 steps (4 s)")
+    grid = TimeGrid(obs_len=4, pred_len=4)              # the model's grid decides: 8 steps
+    assert len(data.load_split(config, "train", grid)) > 0
+    grid = TimeGrid(obs_len=8, pred_len=8)
+    assert data.no_windows_message(data.load_split(config, "test", grid), config, "test",
+                                   grid).endswith(
+        "a window needs someone detected at 16 steps of 0.4 s (6.4 s) in a row (8 observed, 8 "
+        "predicted), and the longest track is 10 steps (4 s)")
+
+
+# --- names ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, expected", [
+    ("cam:1.txt", "cam-1"), ("a<b>|c?.txt", "a-b-c-"), ("-flag.txt", "flag"),
+    ("crowd_10hz.txt", "crowd_10hz"),
+])
+def test_runs_of_own_data_have_names_a_model_name_can_hold(tmp_path, name, expected):
+    from gst_jax.io.workdir import run_name
+
+    path = tmp_path / name
+    path.write_text(SAMPLE.read_text())
+    config = _parsed("--data", str(path), "--fps", "10", "--units", "cm")
+    assert config.scene == data.data_name(str(path)) == expected
+    name = run_name(config, ModelConfig(), TrainConfig())
+    assert ":" not in name and "/" not in name

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import warnings
+from unittest import mock
 
 import jax
 import numpy as np
@@ -10,8 +11,11 @@ import pytest
 
 import gst_jax
 from gst_jax import compiles
+from gst_jax import predict as predict_module
 from gst_jax.compiles import count_compiles
+from gst_jax.errors import DataError
 from gst_jax.model import Controls
+from gst_jax.predict import Chunking
 from gst_jax.rollout import rollout
 
 CONFIG = gst_jax.ModelConfig()
@@ -49,6 +53,10 @@ def test_predict_from_nan_marked_observations():
     np.testing.assert_allclose(np.asarray(prediction.sampled_adjacency)[:, 0, 8:, 1:5].sum(-1), 1.0)
     # K samples are different draws of the graph.
     assert not np.array_equal(prediction.sampled_adjacency[0], prediction.sampled_adjacency[1])
+    # Inside a planner's own jit: the same single vmap over samples, the same futures.
+    batch = gst_jax.make_batch(xy)
+    inside = jax.jit(lambda p, k: predict(p, k, batch).positions)(params, jax.random.key(1))
+    np.testing.assert_allclose(inside, prediction.positions, rtol=0, atol=1e-5)
 
 
 def test_samples_share_the_observation_pass_without_changing_them():
@@ -113,3 +121,103 @@ def test_memory_maps_are_read_from_the_kernel_on_linux():
         pytest.skip("not Linux")
     held, limit = maps
     assert 0 < held < limit
+
+
+# --- memory: chunked samples, the estimate, the refusal ---------------------------------------
+
+def test_samples_in_chunks_are_the_samples_of_one_vmap():
+    """A budget below any program's need computes one sample at a time and the observed
+    steps one by one: the same keys, so the same draws (graphs equal) and the same numbers up
+    to float32 rounding."""
+    config = gst_jax.ModelConfig(output="gaussian")               # samples its Gaussian too
+    params = gst_jax.init_params(config, jax.random.key(0))
+    batch = gst_jax.make_batch(np.concatenate([observations(13, 0), observations(13, 1)]))
+    key = jax.random.key(3)
+    one_at_a_time = gst_jax.make_predict(config, num_samples=K, memory_budget_bytes=1)
+    chunked = one_at_a_time(params, key, batch)
+    assert one_at_a_time.chunking(params, key, batch) == Chunking(1, 1, mock.ANY, mock.ANY)
+    # Choosing compiled the single vmap first, to measure it: jit's cache holds it.
+    whole = one_at_a_time._program(K, None)(params, key, batch, None)
+
+    np.testing.assert_array_equal(chunked.sampled_adjacency, whole.sampled_adjacency)
+    np.testing.assert_array_equal(chunked.predicted_mask, whole.predicted_mask)
+    # The edge selector's observed steps, one at a time, compute what all at once do, bit for
+    # bit; a vmap over 1 sample instead of K may order the rollout's sums otherwise: each of
+    # its obs_len + pred_len sequential steps may add an ulp of what it carries, and positions
+    # sum the displacements.
+    steps = config.obs_len + config.pred_len
+    ulp = np.finfo(np.float32).eps
+    np.testing.assert_array_equal(np.isnan(chunked.positions), np.isnan(whole.positions))
+    for name in ("displacements", "mu", "sigma", "corr", "positions"):
+        reference = np.asarray(getattr(whole, name))
+        largest = np.nanmax(np.abs(reference))
+        np.testing.assert_allclose(getattr(chunked, name), reference, rtol=0,
+                                   atol=steps * ulp * largest, err_msg=name)
+    np.testing.assert_allclose(chunked.edge_probs, whole.edge_probs, rtol=0, atol=steps * ulp)
+
+
+def test_a_prediction_that_cannot_fit_is_refused_in_one_line_before_it_runs(monkeypatch):
+    monkeypatch.setattr(predict_module, "available_memory",
+                        lambda device: (2 ** 16, "under this process's cgroup memory limit"))
+    params = gst_jax.init_params(CONFIG, jax.random.key(0))
+    predict = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False)
+    with count_compiles() as compiles:
+        with pytest.raises(DataError, match=(
+                r"^predicting 3 samples of a scene of 5 people needs \d+ [KM]iB at least \(one "
+                r"sample at a time\); 64 KiB is available \(under this process's cgroup memory "
+                r"limit\); use fewer people per scene or more memory$")):
+            predict(params, jax.random.key(1), gst_jax.make_batch(observations(5)))
+    assert compiles.count == 2             # measured: the single vmap, then one at a time
+
+
+def test_a_chunked_shape_compiles_once_and_a_small_one_keeps_its_single_program():
+    params = gst_jax.init_params(CONFIG, jax.random.key(0))
+    batch = gst_jax.make_batch(observations(5))
+    frugal = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False, memory_budget_bytes=1)
+    with count_compiles() as choosing:
+        jax.block_until_ready(frugal(params, jax.random.key(1), batch))
+    assert choosing.count == 2             # the single vmap (measured), one at a time (run)
+    with count_compiles() as again:
+        for seed in range(3):
+            jax.block_until_ready(frugal(params, jax.random.key(seed), gst_jax.make_batch(
+                observations(3 + seed, seed))))
+    assert again.count == 0
+
+    default = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False)
+    with count_compiles() as small:
+        jax.block_until_ready(default(params, jax.random.key(1), batch))
+        jax.block_until_ready(default(params, jax.random.key(2), batch))
+    assert small.count == 1                # measured and run: one program
+    assert default.chunking(params, jax.random.key(1), batch).samples_at_once == K
+
+
+def test_the_memory_left_under_cgroup_limits_is_read_for_v1_and_v2(tmp_path):
+    def write(directory, **files):
+        directory.mkdir(parents=True, exist_ok=True)
+        for name, text in files.items():
+            (directory / name.replace("_", ".", 1)).write_text(text)
+
+    # v2: this process's cgroup has 3 GiB, 1 GiB used of which 0.25 GiB inactive file pages
+    # (reclaimable); its parent's limit is looser, the root has none.
+    write(tmp_path / "a" / "b", memory_max=str(3 * 2 ** 30), memory_current=str(2 ** 30),
+          memory_stat=f"anon 1\ninactive_file {2 ** 28}\n")
+    write(tmp_path / "a", memory_max=str(8 * 2 ** 30), memory_current=str(2 ** 30),
+          memory_stat="")
+    assert predict_module.cgroup_headroom("0::/a/b\n", tmp_path) == 2 * 2 ** 30 + 2 ** 28
+    # No limit anywhere ("max"): None, and MemAvailable decides.
+    write(tmp_path / "c", memory_max="max", memory_current="5")
+    assert predict_module.cgroup_headroom("0::/c\n", tmp_path) is None
+    # v1: the memory controller's own hierarchy; "no limit" is a huge number.
+    write(tmp_path / "memory" / "job", memory_limit_in_bytes=str(2 ** 31),
+          memory_usage_in_bytes=str(2 ** 30), memory_stat="total_inactive_file 0\n")
+    write(tmp_path / "memory", memory_limit_in_bytes=str(2 ** 63 - 4096),
+          memory_usage_in_bytes="7")
+    assert predict_module.cgroup_headroom("4:memory:/job\n3:cpu:/job\n", tmp_path) == 2 ** 30
+
+
+def test_the_memory_available_on_this_machine_is_known():
+    available = predict_module.available_memory(jax.devices()[0])
+    if available is None:
+        pytest.skip("no memory figures on this platform")
+    left, source = available
+    assert 0 < left and source

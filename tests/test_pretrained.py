@@ -1,8 +1,11 @@
-"""Every shipped pretrained model loads and reproduces its recorded fixed-key AOE."""
+"""Every shipped pretrained model loads and reproduces its recorded fixed-key AOE; its weights
+(model.safetensors, config.json) agree with its record (meta.json) and ship in the wheel."""
 
 from __future__ import annotations
 
+import fnmatch
 import json
+from pathlib import Path
 
 import pytest
 
@@ -10,6 +13,7 @@ from gst_jax import load_pretrained, pretrained
 from gst_jax.config import CROWD_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.errors import RunError
 from gst_jax.io.workdir import WorkDir
+from gst_jax.model import weights
 from gst_jax.pretrained import export
 from gst_jax.pretrained.export import check_aoe, check_data_config
 from gst_jax.training.loop import fit
@@ -27,6 +31,29 @@ def test_pretrained_model_reproduces_its_recorded_aoe(name):
     assert abs(aoe - meta["check"]["aoe"]) < 1e-3
 
 
+@pytest.mark.parametrize("name", pretrained.available())
+def test_a_shipped_model_is_a_weights_folder_that_agrees_with_its_record(name):
+    folder, meta = pretrained.folder(name), pretrained.load_meta(name)
+    config = weights.read_config(folder)
+    for key in ("model", "data", "train", "epoch", "source", "licence", "commands"):
+        assert config[key] == meta[key], key
+    assert meta["commands"] and meta["source"]
+    if name.startswith("crowdnav_sj"):             # made by others: their licence beside it
+        assert meta["licence"].startswith("MIT") and sorted(folder.glob("LICENSE.*"))
+
+
+def test_the_wheel_carries_every_file_of_the_shipped_models():
+    tomllib = pytest.importorskip("tomllib")      # Python 3.11+
+    root = Path(pretrained.__file__).parents[1]
+    pyproject = tomllib.loads((root.parent / "pyproject.toml").read_text())
+    globs = pyproject["tool"]["setuptools"]["package-data"]["gst_jax"]
+    shipped = [path.relative_to(root).as_posix() for name in pretrained.available()
+               for path in pretrained.folder(name).rglob("*") if path.is_file()]
+    assert shipped and "pretrained/SOURCES.md" in globs
+    assert not [path for path in shipped if not any(fnmatch.fnmatch(path, glob)
+                                                    for glob in globs)]
+
+
 def test_the_general_model_is_trained_on_crowd_and_shipped_with_its_score_on_every_scene(
         tmp_path, monkeypatch):
     run = tmp_path / "crowd-run"
@@ -38,7 +65,9 @@ def test_the_general_model_is_trained_on_crowd_and_shipped_with_its_score_on_eve
 
     for k, scene in enumerate(CROWD_SCENES):    # as `experiments/crowd.py --train` records them
         WorkDir(run).write_evaluation(DataConfig(scene=scene), "test", 1, {"aoe": k}, "")
-    meta = json.loads((export.export(run, "crowd_d") / "meta.json").read_text())
+    folder = export.export(run, "crowd_d")
+    meta = json.loads((folder / "meta.json").read_text())
     assert meta["data"]["scene"] == "crowd"
+    assert weights.load(folder).config["source"] == meta["source"] == str(run.absolute())
     assert {scene: m["aoe"] for scene, m in meta["test_metrics_per_scene"].items()} == {
         scene: k for k, scene in enumerate(CROWD_SCENES)}

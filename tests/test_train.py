@@ -25,7 +25,7 @@ from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.errors import NonFiniteError, RunError
 from gst_jax.io.checkpoints import Checkpointer
-from gst_jax.io.interrupts import interrupts_deferred
+from gst_jax.io.interrupts import writes_completed
 from gst_jax.io.workdir import WorkDir, code_version, run_config, run_name, same_run
 from gst_jax.model import heads
 from gst_jax.predict import make_predict
@@ -394,7 +394,7 @@ def test_a_ctrl_c_during_a_checkpoint_save_takes_effect_once_it_is_complete(tmp_
 def test_an_ignored_ctrl_c_stays_ignored_during_a_checkpoint_save():
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)      # as in a script's background job
     try:
-        with interrupts_deferred():
+        with writes_completed():
             os.kill(os.getpid(), signal.SIGINT)
     finally:
         signal.signal(signal.SIGINT, previous)

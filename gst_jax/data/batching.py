@@ -84,8 +84,8 @@ def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int
 
 
 def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int = 0,
-                     epoch: int = 0, slots_multiple: int = 1,
-                     one_micro_batch: bool = False) -> Iterator[PackedStep]:
+                     epoch: int = 0, slots_multiple: int = 1, one_micro_batch: bool = False,
+                     first_step: int = 0) -> Iterator[PackedStep]:
     """One packed step per optimiser step: shuffled windows taken `batch_size` at a time.
 
     As in the release, a step averages `batch_size` randomly drawn scenes (the last step of
@@ -93,13 +93,14 @@ def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int =
     the same steps. slots_multiple: every micro-batch holds a multiple of this many scenes
     (the devices it is split over; see `pack_step`). one_micro_batch: every step in one
     micro-batch padded to the set's largest window (a GPU, where a call costs more than
-    padding): one program per run.
+    padding): one program per run. first_step: the steps from this one on (a resume inside
+    the epoch).
     """
     pad_to = None
     if one_micro_batch and len(window_set):
         pad_to = bucket_size(max(w.num_observed for w in window_set.windows), TRAINING_BUCKETS)
     order = np.random.default_rng([seed, epoch]).permutation(len(window_set))
-    for start in range(0, len(order), batch_size):
+    for start in range(first_step * batch_size, len(order), batch_size):
         chosen = order[start:start + batch_size]
         yield pack_step([window_set[i] for i in chosen], chosen, batch_size, slots_multiple,
                         pad_to=pad_to)

@@ -6,6 +6,7 @@ what is wrong, before any array is built: a bad file never turns into a silently
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import math
@@ -19,6 +20,15 @@ from gst_jax.errors import DataError
 
 # Frame and pedestrian ids are parsed as floats: beyond 2^53 they are no longer exact.
 LARGEST_ID = 2 ** 53
+# Metres per unit of a file's coordinates (--units).
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048}
+# What a text file's columns hold, in the order `--columns` names them.
+ROLES = ("frame", "pedestrian id", "x", "y")
+# Header names recognised without --columns (compared in lower case), per role.
+HEADER_NAMES = {"frame": ("frame", "frame_id"),
+                "pedestrian id": ("id", "ped", "ped_id", "pedestrian", "pedestrian_id",
+                                  "track", "track_id"),
+                "x": ("x",), "y": ("y",)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,18 +54,25 @@ class Tracks:
     rate_hz: float | None = None
 
 
-def read_tracks(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
-    """Read a raw ETH/UCY text file (`.txt`) or a TrajNet++ file (`.ndjson`).
+def read_tracks(path: str | Path, *, drop_off_grid: bool = False,
+                columns: str | None = None) -> Tracks:
+    """Read a text file (`frame ped x y` as the raw ETH/UCY files, or a tracker's CSV) or a
+    TrajNet++ file (`.ndjson`).
 
     drop_off_grid: drop rows whose frame is off the file's grid (with a warning that counts
     them) instead of refusing the file.
+    columns: which columns of a text file hold frame, pedestrian id, x and y (`--columns`,
+    see `read_text_tracks`).
     """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: no such file")
     if path.suffix == ".ndjson":
+        if columns:
+            raise DataError(f"{path}: --columns {columns} names the columns of text files; a "
+                            "TrajNet++ file's are its keys f, p, x, y")
         return read_trajnet_ndjson(path, drop_off_grid=drop_off_grid)
-    return read_text_tracks(path, drop_off_grid=drop_off_grid)
+    return read_text_tracks(path, drop_off_grid=drop_off_grid, columns=columns)
 
 
 def _lines(path: Path) -> Iterator[tuple[int, str]]:
@@ -70,17 +87,122 @@ def _lines(path: Path) -> Iterator[tuple[int, str]]:
             yield line_number, line
 
 
-def read_text_tracks(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
-    """`frame ped x y` rows, tab- or space-separated, as in the ETH/UCY raw files."""
+def read_text_tracks(path: str | Path, *, drop_off_grid: bool = False,
+                     columns: str | None = None) -> Tracks:
+    """Rows of frame, pedestrian id, x, y in a text file: comma-separated (a tracker's CSV)
+    or tab- or space-separated (the ETH/UCY raw files), with an optional header line (a
+    first line in which no field is a number).
+
+    columns: `--columns`, four comma-separated columns holding frame, pedestrian id, x and y,
+    each a header name or a column number counted from 1 (MOTChallenge rows
+    `frame,id,bb_left,bb_top,bb_width,bb_height,conf,x,y,z`: "1,2,8,9"). None: a header's
+    recognised names (HEADER_NAMES), else exactly four columns `frame ped x y`.
+    """
     path = Path(path)
+    lines = _lines(path)
+    first = next(lines, None)
+    if first is None:
+        return _build_tracks(path, [], drop_off_grid)
+    split = _comma_fields if "," in first[1] else str.split
+    header = split(first[1])
+    if any(_is_number(field) for field in header):
+        header, lines = None, _chain(first, lines)
+    where = _column_indices(path, first[0], header, parse_columns(columns) if columns else None)
+    bare = header is None and not columns       # the ETH/UCY format: exactly frame ped x y
+    width = len(split(first[1]))
+    if max(where) >= width:
+        raise DataError(f"{path}:{first[0]}: --columns {columns} names column {max(where) + 1}, "
+                        f"but the line has {width}: {first[1].strip()!r}")
     rows = []
-    for line_number, line in _lines(path):
-        fields = line.split()
-        if len(fields) != 4:
-            raise DataError(f"{path}:{line_number}: expected 4 columns (frame ped x y), "
-                            f"found {len(fields)}: {line.strip()!r}")
-        rows.append(_parse_row(path, line_number, fields))
+    for line_number, line in lines:
+        fields = split(line)
+        if bare and len(fields) != 4:
+            raise DataError(f"{path}:{line_number}: expected 4 columns (frame ped x y), found "
+                            f"{len(fields)}: {line.strip()!r}; a file with other columns names "
+                            "them with --columns (e.g. --columns 1,2,8,9)")
+        # Every row as wide as the first: a decimal comma in a CSV shifts the columns.
+        if len(fields) != width:
+            raise DataError(f"{path}:{line_number}: expected {width} columns as line "
+                            f"{first[0]} has ({_describe(where)}), found {len(fields)}: "
+                            f"{line.strip()!r}")
+        rows.append(_parse_row(path, line_number, [fields[i] for i in where]))
     return _build_tracks(path, rows, drop_off_grid)
+
+
+def parse_columns(spec: str) -> tuple[int | str, ...]:
+    """`--columns` -> the four columns of frame, pedestrian id, x, y: 0-based indices for the
+    numbers (counted from 1 in the flag), lower-case header names for the rest."""
+    items = [item.strip() for item in spec.split(",")]
+    if len(items) != 4 or not all(items):
+        raise DataError(f"--columns {spec}: expected 4 comma-separated columns holding frame, "
+                        "pedestrian id, x, y (header names or numbers from 1, e.g. "
+                        "frame,id,x,y or 1,2,8,9)")
+    parsed: list[int | str] = []
+    for item in items:
+        if item.isdigit():
+            if int(item) < 1:
+                raise DataError(f"--columns {spec}: columns are numbered from 1, got {item}")
+            parsed.append(int(item) - 1)
+        else:
+            parsed.append(item.lower())
+    if len(set(parsed)) < 4:
+        raise DataError(f"--columns {spec}: names a column twice")
+    return tuple(parsed)
+
+
+def _column_indices(path: Path, line_number: int, header: list[str] | None,
+                    columns: tuple[int | str, ...] | None) -> tuple[int, ...]:
+    """The 0-based columns of frame, pedestrian id, x, y."""
+    names = [name.strip().lower() for name in header] if header is not None else None
+    if columns is None:
+        if names is None:
+            return (0, 1, 2, 3)
+        columns = []
+        for role in ROLES:
+            found = [name for name in HEADER_NAMES[role] if name in names]
+            if not found:
+                raise DataError(f"{path}:{line_number}: the header ({', '.join(header)}) names no "
+                                f"{role} column ({' / '.join(HEADER_NAMES[role])}); say which "
+                                "columns hold frame, id, x, y with --columns (e.g. "
+                                "--columns frame,id,x,y or 1,2,8,9)")
+            columns.append(found[0])
+    indices = []
+    for column in columns:
+        if isinstance(column, int):
+            indices.append(column)
+        elif names is None:
+            raise DataError(f"{path}:{line_number}: --columns names the column {column!r}, but "
+                            "the file has no header line (its first line holds numbers); "
+                            "number the columns from 1 instead")
+        elif column not in names:
+            raise DataError(f"{path}:{line_number}: the header ({', '.join(header)}) has no "
+                            f"column {column!r}")
+        else:
+            indices.append(names.index(column))
+    return tuple(indices)
+
+
+def _describe(where: tuple[int, ...]) -> str:
+    """'frame 1, pedestrian id 2, x 8, y 9': which column holds what, counted from 1."""
+    return ", ".join(f"{role} {index + 1}" for role, index in zip(ROLES, where))
+
+
+def _comma_fields(line: str) -> list[str]:
+    return [field.strip() for field in next(csv.reader([line]))]
+
+
+def _is_number(field: str) -> bool:
+    try:
+        float(field)
+    except ValueError:
+        return False
+    return True
+
+
+def _chain(first: tuple[int, str], rest: Iterator[tuple[int, str]]
+           ) -> Iterator[tuple[int, str]]:
+    yield first
+    yield from rest
 
 
 def read_trajnet_ndjson(path: str | Path, *, drop_off_grid: bool = False) -> Tracks:
@@ -92,6 +214,8 @@ def read_trajnet_ndjson(path: str | Path, *, drop_off_grid: bool = False) -> Tra
             record = json.loads(line)
         except json.JSONDecodeError as error:
             raise DataError(f"{path}:{line_number}: not valid JSON ({error.msg})") from None
+        except RecursionError:       # json's decoder recurses once per bracket
+            raise DataError(f"{path}:{line_number}: not valid JSON (nested too deeply)") from None
         if not isinstance(record, dict) or not ({"scene", "track"} & record.keys()):
             raise DataError(f"{path}:{line_number}: expected a 'scene' or 'track' record")
         if "scene" in record:
@@ -116,9 +240,8 @@ def read_trajnet_ndjson(path: str | Path, *, drop_off_grid: bool = False) -> Tra
 
 
 def _parse_row(path: Path, line_number: int, fields: list) -> tuple[int, int, float, float, int]:
-    names = ("frame", "pedestrian id", "x", "y")
     values = []
-    for name, field in zip(names, fields):
+    for name, field in zip(ROLES, fields):
         try:
             value = float(field)
         except (TypeError, ValueError):

@@ -5,13 +5,14 @@ from __future__ import annotations
 import dataclasses
 
 from gst_jax.config import DataConfig, TimeGrid
-from gst_jax.data.protocols import has_validation, load_split
+from gst_jax.data.protocols import has_validation, load_split, why_no_window
 
 
 def split_stats(config: DataConfig, scenes: list[str], grid: TimeGrid = TimeGrid()) -> dict:
     """`{"protocol": ..., "scenes": {scene: {split: {windows, pedestrian_slots,
-    max_pedestrians, fully_detected}}}, "files_without_windows": {"scene/split": [file]}}`
-    for the given scenes; the last lists the files that gave a split no window."""
+    max_pedestrians, fully_detected}}}, "files_without_windows": {"scene/split": {file:
+    why}}}` for the given scenes; the last names the files that gave a split no window, and
+    why (`why_no_window`)."""
     splits = ("train", "val", "test") if has_validation(config) else ("train", "test")
     result = {"protocol": f"{config.protocol}, obs {grid.obs_len}, pred {grid.pred_len}",
               "scenes": {}, "files_without_windows": {}}
@@ -22,7 +23,8 @@ def split_stats(config: DataConfig, scenes: list[str], grid: TimeGrid = TimeGrid
             window_set = load_split(scene_config, split, grid)
             result["scenes"][scene][split] = window_set.stats()
             if empty := window_set.files_without_windows():
-                result["files_without_windows"][f"{scene}/{split}"] = empty
+                result["files_without_windows"][f"{scene}/{split}"] = {
+                    path: why_no_window(path, scene_config, split, grid) for path in empty}
     return result
 
 
@@ -42,6 +44,5 @@ def format_stats(stats: dict) -> str:
         lines.append("  ".join(str(c).rjust(w) if i >= 2 else str(c).ljust(w)
                                for i, (c, w) in enumerate(zip(row, widths))))
     for name, files in stats.get("files_without_windows", {}).items():
-        lines += [f"note: {path} gives {name} no window (shorter than a window, or nobody "
-                  "fully detected in any)" for path in files]
+        lines += [f"note: {path} gives {name} no window: {why}" for path, why in files.items()]
     return "\n".join(lines)

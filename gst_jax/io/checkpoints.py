@@ -2,29 +2,35 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import logging
 import os
+import sys
+import tempfile
 import warnings
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Iterator, NamedTuple
 
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
 from gst_jax.errors import RunError
-from gst_jax.io.interrupts import interrupts_deferred
+from gst_jax.io.interrupts import writes_completed
 
 
 class Restored(NamedTuple):
-    """A checkpoint read back: the state, the run's config, the metrics records up to its
-    epoch (one per epoch), and the epoch."""
+    """A checkpoint read back: the state, the run's config, the metrics records of the
+    epochs it completed (one per epoch), its epoch, and, for a checkpoint taken inside an
+    epoch, where in it (`progress`, as saved)."""
 
     state: Any
     config: dict
     records: list
     epoch: int
+    progress: dict | None = None
 
 
 class Checkpointer:
@@ -32,8 +38,11 @@ class Checkpointer:
 
     Saving is synchronous and refuses a non-finite state: a checkpoint that `save` returned
     from is complete on disk, so a process killed at any later moment resumes from it. Its
-    files' SHA-256 is recorded in `checkpoints/checksums.json`; `restore` verifies it and,
-    with `fall_back`, goes back to the newest checkpoint that is intact (with a warning).
+    files' SHA-256 is recorded in `checkpoints/checksums.json`; `restore` verifies it, checks
+    that the arrays it read are finite and, with `fall_back`, goes back to the newest
+    checkpoint that passes both (with a warning). A checkpoint without a recorded checksum (a
+    crash between its write and the record, or checksums.json lost) is said to be unverified,
+    used if its arrays are finite, and recorded then.
     """
 
     def __init__(self, directory: Path, max_to_keep: int = 3, *, create: bool = True):
@@ -47,30 +56,39 @@ class Checkpointer:
     def latest_epoch(self) -> int | None:
         return self._manager.latest_step()
 
-    def save(self, epoch: int, state: Any, config: dict, records: list) -> None:
-        """Save and checksum `epoch`; a Ctrl-C meanwhile takes effect once it is complete."""
-        if not all(bool(np.all(np.isfinite(leaf))) for leaf in jax.tree.leaves(state)
-                   if np.issubdtype(leaf.dtype, np.floating)):
+    @property
+    def directory(self) -> Path:
+        return self._directory
+
+    def save(self, epoch: int, state: Any, config: dict, records: list,
+             progress: dict | None = None) -> None:
+        """Save and checksum `epoch` (with `progress`: a checkpoint inside that epoch); a
+        stop signal meanwhile takes effect once it is complete."""
+        if not _finite(state):
             raise RunError(f"refusing to save a non-finite training state (epoch {epoch})")
-        with interrupts_deferred():
-            self._manager.save(epoch, args=ocp.args.Composite(
-                state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),
-                metrics=ocp.args.JsonSave(records)))
-            self._manager.wait_until_finished()
-            if jax.process_index() != 0:            # the checksums are written once
-                return
-            checksums = self._read_checksums()
-            checksums[str(epoch)] = self._checksum(epoch)
-            kept = {str(e) for e in self._manager.all_steps()}
-            write_atomically(self._checksums, json.dumps(
-                {e: c for e, c in checksums.items() if e in kept}, indent=1))
+        items = dict(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),
+                     metrics=ocp.args.JsonSave(records))
+        if progress is not None:
+            items["progress"] = ocp.args.JsonSave(progress)
+        with writes_completed(), _failures_quiet():
+            try:
+                self._manager.save(epoch, args=ocp.args.Composite(**items))
+                self._manager.wait_until_finished()
+            except BaseException:
+                # Its writer threads end now, while stderr is held back, not at exit, where
+                # they printed "Event loop is closed" tracebacks after the one-line error.
+                with contextlib.suppress(Exception):
+                    self._manager.close()
+                raise
+            self._record_checksum(epoch)
 
     def restore(self, like_state: Any, epoch: int | None = None, *,
                 fall_back: bool = False) -> Restored:
         """Restore `epoch` (default: the latest); `like_state` (arrays or their abstract
         shapes) gives the tree structure and dtypes. With `fall_back`, a checkpoint that fails
-        its checksum or cannot be read is skipped for the one before it. The arrays come back
-        on this process's first device, whatever devices saved them."""
+        its checksum, cannot be read or holds non-finite arrays is skipped for the one before
+        it. The arrays come back on this process's first device, whatever devices saved
+        them."""
         here = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
         abstract = jax.tree.map(
             lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=here), like_state)
@@ -78,34 +96,57 @@ class Checkpointer:
                                                               reverse=True)
         problems = []
         for candidate in candidates:
-            problem = self._verify(candidate)
-            if problem is None:
-                try:
-                    restored = self._manager.restore(candidate, args=ocp.args.Composite(
-                        state=ocp.args.StandardRestore(abstract), config=ocp.args.JsonRestore(),
-                        metrics=ocp.args.JsonRestore()))
-                except Exception as error:  # orbax raises many kinds on damaged files
-                    problem = f"unreadable ({type(error).__name__})"
+            restored, problem = self._restore_verified(candidate, abstract)
             if problem is None:
                 if problems:
                     warnings.warn(f"{self._directory}: using the checkpoint of epoch "
                                   f"{candidate}; skipped " + "; ".join(problems), stacklevel=2)
-                return Restored(restored.state, restored.config, list(restored.metrics),
-                                candidate)
+                return restored
             problems.append(f"epoch {candidate}: {problem}")
             if not fall_back:
                 break
         raise RunError(f"no usable checkpoint in {self._directory}: " + "; ".join(problems)
                        if problems else f"no checkpoint in {self._directory}")
 
+    def _restore_verified(self, epoch: int, abstract: Any) -> tuple[Restored | None, str | None]:
+        """(the checkpoint, None), or (None, what is wrong with it)."""
+        expected = self._read_checksums().get(str(epoch))
+        if expected is not None and expected != self._checksum(epoch):
+            return None, "its files do not match the checksum recorded when it was saved"
+        items = dict(state=ocp.args.StandardRestore(abstract), config=ocp.args.JsonRestore(),
+                     metrics=ocp.args.JsonRestore())
+        if (self._directory / str(epoch) / "progress").is_dir():
+            items["progress"] = ocp.args.JsonRestore()
+        try:
+            restored = self._manager.restore(epoch, args=ocp.args.Composite(**items))
+        except Exception as error:  # orbax raises many kinds on damaged files
+            return None, f"unreadable ({type(error).__name__})"
+        if not _finite(restored.state):
+            return None, "its arrays are not all finite"
+        if expected is None:
+            warnings.warn(f"{self._directory / str(epoch)} has no recorded checksum (a crash "
+                          "right after it was written, or checksums.json lost), so it cannot be "
+                          "verified; its arrays are finite and it is used (its checksum is "
+                          "recorded now)", stacklevel=3)
+            with contextlib.suppress(OSError):      # a read-only copy stays unrecorded
+                self._record_checksum(epoch)
+        progress = restored["progress"] if "progress" in items else None
+        return Restored(restored.state, restored.config, list(restored.metrics), epoch,
+                        progress), None
+
     def read_config(self, epoch: int | None = None) -> dict:
         """The JSON config stored with checkpoint `epoch`, by default the newest readable one
         (arrays untouched)."""
+        return self.read_json("config", epoch)
+
+    def read_json(self, item: str, epoch: int | None = None) -> Any:
+        """A JSON item ("config", "metrics", "progress") of checkpoint `epoch`, by default
+        the newest readable one (arrays untouched)."""
         epochs = [epoch] if epoch is not None else sorted(self._manager.all_steps(), reverse=True)
         for epoch in epochs:
             try:
                 return self._manager.restore(epoch, args=ocp.args.Composite(
-                    config=ocp.args.JsonRestore())).config
+                    **{item: ocp.args.JsonRestore()}))[item]
             except Exception:  # a damaged checkpoint: the one before it may do
                 continue
         raise RunError(f"no readable checkpoint in {self._directory}")
@@ -114,6 +155,13 @@ class Checkpointer:
         """Delete the checkpoints of later epochs (damaged ones that a resume skipped)."""
         for later in [e for e in self._manager.all_steps() if e > epoch]:
             self._manager.delete(later)
+
+    def discard(self) -> None:
+        """Delete every checkpoint (an interrupted epoch's, once a later one is saved)."""
+        for epoch in self._manager.all_steps():
+            self._manager.delete(epoch)
+        if jax.process_index() == 0:
+            self._checksums.unlink(missing_ok=True)
 
     def close(self) -> None:
         self._manager.close()
@@ -127,18 +175,59 @@ class Checkpointer:
         return digest.hexdigest()
 
     def _read_checksums(self) -> dict:
+        """The recorded checksums; {} (with a warning) where the file is damaged."""
         try:
-            return json.loads(self._checksums.read_text())
-        except (FileNotFoundError, json.JSONDecodeError):
+            checksums = json.loads(self._checksums.read_text())
+        except FileNotFoundError:
             return {}
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            checksums = None
+        if not isinstance(checksums, dict):
+            warnings.warn(f"{self._checksums} is damaged: no checkpoint of this run can be "
+                          "verified", stacklevel=3)
+            return {}
+        return checksums
 
-    def _verify(self, epoch: int) -> str | None:
-        """None if the checkpoint's files match the checksum recorded when it was saved (or
-        none was recorded: a crash between the save and the record); else the problem."""
-        expected = self._read_checksums().get(str(epoch))
-        if expected is not None and expected != self._checksum(epoch):
-            return "its files do not match the checksum recorded when it was saved"
-        return None
+    def _record_checksum(self, epoch: int) -> None:
+        """Record `epoch`'s checksum, and drop those of checkpoints no longer kept."""
+        if jax.process_index() != 0:            # the checksums are written once
+            return
+        checksums = self._read_checksums()
+        checksums[str(epoch)] = self._checksum(epoch)
+        kept = {str(e) for e in self._manager.all_steps()}
+        write_atomically(self._checksums, json.dumps(
+            {e: c for e, c in checksums.items() if e in kept}, indent=1))
+
+
+@contextlib.contextmanager
+def _failures_quiet() -> Iterator[None]:
+    """A failed write (a full disk) is raised, once: orbax's and tensorstore's writer threads
+    also print it, in pages of tracebacks on stderr during the save and from asyncio's tasks
+    at exit. So stderr (the file descriptor, which C++ writes to as well) is held back during
+    the save and replayed if it succeeds, and after a failure their loggers stay quiet."""
+    with tempfile.TemporaryFile() as held:
+        sys.stderr.flush()
+        stderr = os.dup(2)
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        except BaseException:
+            for name in ("asyncio", "absl"):
+                logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+            raise
+        else:
+            held.seek(0)
+            os.write(stderr, held.read())
+        finally:
+            sys.stderr.flush()
+            os.dup2(stderr, 2)
+            os.close(stderr)
+
+
+def _finite(tree: Any) -> bool:
+    """Whether every floating-point array of `tree` is finite."""
+    return all(bool(np.all(np.isfinite(leaf))) for leaf in jax.tree.leaves(tree)
+               if np.issubdtype(leaf.dtype, np.floating))
 
 
 def write_atomically(path: Path, text: str) -> None:

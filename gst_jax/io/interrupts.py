@@ -1,72 +1,148 @@
-"""Ctrl-C (SIGINT) while files are written or steps run: deferred to the end of a checkpoint's
-save, noticed between training steps."""
+"""Stopping cleanly on SIGINT (Ctrl-C) and SIGTERM (what Slurm, Docker and Kubernetes send
+before they kill a job): never in the middle of a checkpoint's write, and promptly.
+
+    stops_noted()        inside, a stop signal is noted, not raised; the training loop asks
+                         `stop_requested()` after every step and stops there, saving where
+                         it is (an exact mid-epoch checkpoint)
+    writes_completed()   a stop signal that arrives while a checkpoint is written takes
+                         effect once the write is complete
+    stops_end_the_process(grace_s)
+                         for commands: a stop ends the process within `grace_s` even where
+                         the main thread cannot notice it (inside an XLA compilation, which
+                         cannot be interrupted), but never in the middle of a write
+
+A signal the process ignores (SIGINT of a script's background job) stays ignored. Python runs
+signal handlers in the main thread only, so only there are they installed.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import socket
 import sys
 import threading
-from typing import Callable, Iterator
+from typing import Iterator
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+_noted: list[int] = []          # stop signals noted inside `stops_noted`
+_noting = [False]               # whether `stops_noted` is active
+_writing = threading.RLock()    # held while a checkpoint is written
+# What a stop that ends the process before the main thread noticed it leaves behind (the
+# training loop keeps it up to date as it saves).
+_forced_exit_note = ["interrupted"]
 
 
-def _sigint_is_ours() -> bool:
-    """Whether this thread may handle SIGINT: the main thread, unless the process ignores it
-    (a background job of a script)."""
+def _ours(signum: int) -> bool:
+    """Whether this thread may handle `signum`: the main thread, unless the process ignores
+    it."""
     return (threading.current_thread() is threading.main_thread()
-            and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN)
+            and signal.getsignal(signum) is not signal.SIG_IGN)
 
 
 @contextlib.contextmanager
-def interrupts_deferred() -> Iterator[None]:
-    """Hold back SIGINT (Ctrl-C, `timeout -s INT`) inside the block and raise it at its end:
-    interrupted inside orbax's save, the main thread would leave orbax's writer threads to
-    fail at exit with a traceback and a half-written checkpoint. A SIGINT the process ignores
-    (a background job of a script) stays ignored."""
-    if not _sigint_is_ours():
-        yield
-        return
-    received = []
-    previous = signal.signal(signal.SIGINT, lambda *_: received.append(True))
+def _handled(handler) -> Iterator[None]:
+    """`handler` for every stop signal this thread may handle; the previous ones restored."""
+    previous = {s: signal.signal(s, handler) for s in STOP_SIGNALS if _ours(s)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-    if received:
-        raise KeyboardInterrupt
+        for signum, old in previous.items():
+            signal.signal(signum, old)
 
 
 @contextlib.contextmanager
-def interrupts_noticed() -> Iterator[Callable[[], None]]:
-    """Inside the block SIGINT raises KeyboardInterrupt as usual and is also remembered; call
-    the yielded check at safe points (after each training step) to raise a remembered one.
-    Python swallows an exception raised in a garbage-collection callback ("Exception ignored
-    in _xla_gc_callback"), so a Ctrl-C that lands in JAX's would otherwise be lost and the
-    run go on (and print "Exception ignored ... KeyboardInterrupt", which is kept quiet here).
-    A SIGINT the process ignores stays ignored."""
-    received = []
+def stops_noted() -> Iterator[None]:
+    """Inside the block a stop signal is noted, not raised: an exception raised between two
+    arbitrary bytecodes of JAX's Python, or in its garbage-collection callback (where Python
+    swallows it), is no safe stop. `stop_requested()` says whether one came."""
+    _noted.clear()
+    _noting[0] = True
+    try:
+        with _handled(lambda signum, frame: _noted.append(signum)):
+            yield
+    finally:
+        _noting[0] = False
+        _noted.clear()
 
-    def check() -> None:
-        if received:
-            received.clear()
+
+def stop_requested() -> str | None:
+    """The name of the stop signal noted inside `stops_noted` ('SIGINT', 'SIGTERM'), or
+    None."""
+    return signal.Signals(_noted[0]).name if _noted else None
+
+
+def set_forced_exit_note(text: str) -> None:
+    """What to say if a stop ends the process before the main thread notices it: what the
+    last save left and what a rerun will do."""
+    _forced_exit_note[0] = text
+
+
+@contextlib.contextmanager
+def writes_completed() -> Iterator[None]:
+    """Hold back stop signals inside the block (a checkpoint's write) and act on one at its
+    end: inside `stops_noted` it stays noted, elsewhere it raises KeyboardInterrupt. Stopped
+    in the middle of orbax's save, the main thread would leave its writer threads to fail at
+    exit with a half-written checkpoint."""
+    held: list[int] = []
+    with _writing, _handled(lambda signum, frame: held.append(signum)):
+        yield
+    if held:
+        if not _noting[0]:
             raise KeyboardInterrupt
+        _noted.append(held[0])
 
-    if not _sigint_is_ours():
-        yield check
+
+@contextlib.contextmanager
+def stops_end_the_process(grace_s: float) -> Iterator[None]:
+    """For a command: a stop signal raises KeyboardInterrupt (SIGTERM as SIGINT does), and if
+    the process still runs `grace_s` after it (its main thread may sit in an XLA
+    compilation, where no Python runs) it ends with status 130 and the forced-exit note, once
+    no write is in progress; a second stop signal ends it at once. The signal is seen as it
+    arrives through `signal.set_wakeup_fd`, which C-level signal handling writes to whatever
+    the main thread is doing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
         return
+    receiver, sender = socket.socketpair()
+    sender.setblocking(False)
+    previous_fd = signal.set_wakeup_fd(sender.fileno(), warn_on_full_buffer=False)
+    done = threading.Event()
 
-    def remember_and_raise(signum, frame):
-        received.append(True)
-        raise KeyboardInterrupt
+    def next_stop(timeout: float | None) -> bool:
+        """Wait for a stop signal's byte; False when the block has ended."""
+        receiver.settimeout(timeout)
+        while byte := receiver.recv(1):
+            if byte[0] in STOP_SIGNALS:
+                return not done.is_set()
+        return False
 
-    def report_unless_interrupt(unraisable) -> None:
-        if not isinstance(unraisable.exc_value, KeyboardInterrupt):
-            previous_hook(unraisable)
+    def watch() -> None:
+        try:
+            if not next_stop(None):
+                return
+            try:
+                if not next_stop(grace_s):
+                    return
+            except TimeoutError:
+                pass
+        except OSError:                     # the sockets closed as the block ended
+            return
+        with _writing:                      # a write in progress completes first
+            if not done.is_set():
+                print(f"\n{_forced_exit_note[0]}", file=sys.stderr, flush=True)
+                os._exit(130)
 
-    previous, previous_hook = signal.signal(signal.SIGINT, remember_and_raise), sys.unraisablehook
-    sys.unraisablehook = report_unless_interrupt
+    watcher = threading.Thread(target=watch, name="gst_jax stop watcher", daemon=True)
+    watcher.start()
     try:
-        yield check
+        with _handled(signal.default_int_handler):
+            yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-        sys.unraisablehook = previous_hook
+        done.set()
+        signal.set_wakeup_fd(previous_fd)
+        sender.close()                      # wakes the watcher, which returns
+        watcher.join()
+        receiver.close()

@@ -2,6 +2,11 @@
 
     <workdir>/config.json                 the run's configuration (model, data, train[, members])
     <workdir>/checkpoints/<epoch>/        orbax: the training state and the config
+    <workdir>/interrupted/<epoch>/        the same, saved inside an epoch by a stop signal
+                                          (with where in the epoch), until a later save
+    <workdir>/selected/<epoch>/           a fine-tuning's model: the epoch (0: the model it
+                                          started from) of the best validation AOE
+    <workdir>/lock                        held by the process that trains in it
     <workdir>/metrics.jsonl               one JSON line per epoch (with the code that trained it)
     <workdir>/summary.json                the training's summary, once it has finished
     <workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json, .md    evaluations
@@ -11,13 +16,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import functools
 import json
 import os
+import socket
 import subprocess
+import time
+import warnings
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import jax
 
@@ -113,6 +123,16 @@ def sweep_name(data_config: DataConfig, train_config: TrainConfig) -> str:
     return f"sweep-{data_config.scene}{schedule}-e{train_config.epochs}"
 
 
+def write_text(path: Path, text: str, mode: str = "w") -> None:
+    """Write (or with mode "a" append) `text`; a failure names the file (Python's write()
+    errors do not), which the commands print as one line."""
+    try:
+        with open(path, mode) as f:
+            f.write(text)
+    except OSError as error:
+        raise OSError(error.errno, error.strerror, str(path)) from None
+
+
 class WorkDir:
     """The files of one work directory (see the module docstring for the layout).
 
@@ -151,7 +171,7 @@ class WorkDir:
                 raise RunError(f"{self.path} holds a run with a different configuration "
                                f"({config_path}); choose another --workdir or delete it")
             if stored != config and self.writes:        # a new checkpoint cadence
-                config_path.write_text(json.dumps(config, indent=2) + "\n")
+                write_text(config_path, json.dumps(config, indent=2) + "\n")
             return
         if (self.path / "checkpoints").is_dir():
             checkpointer = self.checkpointer(create=False)
@@ -166,7 +186,7 @@ class WorkDir:
                                "--workdir or delete it")
         self.path.mkdir(parents=True, exist_ok=True)
         if self.writes:
-            config_path.write_text(json.dumps(config, indent=2) + "\n")
+            write_text(config_path, json.dumps(config, indent=2) + "\n")
 
     def checkpointer(self, *, create: bool = True) -> Checkpointer:
         """The run's checkpoints; `create=False` reads only and fails without creating
@@ -176,18 +196,66 @@ class WorkDir:
             raise RunError(f"no checkpoint in {self.path} (expected {directory}/<epoch>)")
         return Checkpointer(directory, create=create)
 
+    def selected_checkpointer(self, *, create: bool = True) -> Checkpointer | None:
+        """The epoch a fine-tuning selected (`gst_jax.training.loop`); with `create=False`,
+        None where there is none."""
+        directory = self.path / "selected"
+        if not create and not directory.is_dir():
+            return None
+        return Checkpointer(directory, max_to_keep=1, create=create)
+
+    def interrupted_checkpointer(self) -> Checkpointer:
+        """The checkpoint a stop signal saved inside an epoch (one at most)."""
+        return Checkpointer(self.path / "interrupted", max_to_keep=1)
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the work directory for this process (training): a second process training
+        into it is refused, naming the holder. The lock is the kernel's (`flock`), so that of
+        a killed process is gone with it. With several processes, process 0's."""
+        if not self.writes:
+            yield
+            return
+        self.path.mkdir(parents=True, exist_ok=True)
+        with open(self.path / "lock", "a+") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                f.seek(0)
+                holder = f.read().strip() or "another process"
+                raise RunError(f"{self.path} is in use by {holder}; wait for it to finish, or "
+                               "stop it, before training there") from None
+            f.seek(0)
+            f.truncate()
+            f.write(f"process {os.getpid()} on {socket.gethostname()} since "
+                    f"{time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+            f.flush()
+            try:
+                yield
+            finally:
+                f.truncate(0)
+
     def read_metrics(self) -> list[dict]:
-        """The per-epoch records of metrics.jsonl, in order ([] before the first epoch)."""
+        """The per-epoch records of metrics.jsonl, in order ([] before the first epoch). A
+        line cut short (a full disk) is skipped with a warning."""
         if not self.metrics_path.exists():
             return []
-        return [json.loads(line) for line in self.metrics_path.read_text().splitlines()
-                if line.strip()]
+        records = []
+        for number, line in enumerate(self.metrics_path.read_text().splitlines(), start=1):
+            if not line.strip():
+                continue
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                warnings.warn(f"{self.metrics_path}:{number}: skipped a line that is not "
+                              "complete JSON (cut short by a full disk or a crash?)",
+                              stacklevel=2)
+        return records
 
     def append_metrics(self, record: dict) -> None:
         if not self.writes:
             return
-        with self.metrics_path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
+        write_text(self.metrics_path, json.dumps(record) + "\n", mode="a")
 
     def write_metrics(self, records: list[dict]) -> None:
         """Replace metrics.jsonl by `records` (a resume: those of its checkpoint, which drop
@@ -206,7 +274,7 @@ class WorkDir:
 
     def write_summary(self, summary: dict) -> None:
         if self.writes:
-            (self.path / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+            write_text(self.path / "summary.json", json.dumps(summary, indent=2) + "\n")
 
     def evaluation_path(self, data_config: DataConfig, split: str, epoch: int) -> Path:
         """eval/<scene>-<protocol>-<split>-e<epoch>.json (the .md beside it)."""
@@ -232,8 +300,8 @@ class WorkDir:
         path = self.evaluation_path(data_config, split, epoch)
         if self.writes:
             path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(json.dumps(result, indent=2) + "\n")
-            path.with_suffix(".md").write_text(markdown)
+            write_text(path, json.dumps(result, indent=2) + "\n")
+            write_text(path.with_suffix(".md"), markdown)
         return path
 
     def results_path(self, suffix: str) -> Path:

@@ -6,20 +6,46 @@
 Samples are a `vmap` over split keys; the observed steps' edge probabilities, which do not
 depend on the sample, are computed once. Evaluation protocol (docs/MODEL.md 4): hard Gumbel
 samples at tau = 0.03, no dropout; GST (P) also samples its Gaussian.
+
+Memory: the edge selector attends over (N + 1)^2 neighbour pairs for each of N targets, so a
+call grows as K N^3 (N = 300, K = 20: 9.3 GiB, 6.2 GiB of it one buffer). Before a batch
+shape first runs, XLA's estimate of its compiled program is compared with a budget and with
+the memory this process may still take; a program over either computes its samples in
+chunks (`lax.map`, a vmap within each) and the observed steps one at a time, with the same
+keys and so the same samples; one that cannot fit even one sample at a time is refused in
+one line (`DataError`) before anything is allocated (docs/scaling.md).
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable
+import dataclasses
+from pathlib import Path
+from typing import Any
 
 import flax
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
+from gst_jax.errors import DataError
 from gst_jax.model import Controls
 from gst_jax.rollout import observed_edge_probabilities, rollout
+
+# What one call's program may use by default, chunking its samples to stay within it:
+# N = 300, K = 20 then runs 2 samples at a time (1.1 GiB, 1.6 GiB peak for the process) instead
+# of all 20 (8.9 GiB); up to N = 128 at K = 20 (0.7 GiB) it keeps the single vmap over samples.
+DEFAULT_MEMORY_BUDGET = 3 * 2 ** 29
+# XLA's estimate leaves out the scratch the CPU runtime takes while a call runs, about one
+# (N, N+1, N+1) float32 array per sample at once: measured up to 39 % more at N = 300, 11 % at
+# N = 200 (benchmarks/bench_memory.py), so a CPU's need is taken as the estimate times this.
+CPU_RUNTIME_MARGIN = 1.4
+# A chunking is chosen this far below the target, so that the first one measured fits.
+CHUNKING_SLACK = 0.95
+CGROUP_ROOT = Path("/sys/fs/cgroup")
+# cgroup v1 writes "no limit" as a huge number (PAGE_COUNTER_MAX pages).
+NO_LIMIT = 2 ** 60
 
 
 @flax.struct.dataclass
@@ -46,19 +72,128 @@ class Prediction:
     predicted_mask: jax.Array
 
 
+@dataclasses.dataclass(frozen=True)
+class Chunking:
+    """How the program of one batch shape computes, and what XLA says it needs.
+
+    samples_at_once: samples vmapped together, looped over chunks (K: one vmap).
+    observed_steps_at_once: observed steps per edge-selector call (None: all at once).
+    xla_bytes: temporaries + arguments + outputs of the compiled program, over every device
+      of a CPU (they share its memory); None where XLA does not say.
+    bytes_needed: what a call takes: xla_bytes, times CPU_RUNTIME_MARGIN on a CPU.
+    """
+
+    samples_at_once: int
+    observed_steps_at_once: int | None
+    xla_bytes: int | None
+    bytes_needed: int | None
+
+
 def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool = True,
-                 mean: bool = False) -> Callable[..., Prediction]:
-    """Build the jitted `predict(params, key, batch, controls=None) -> Prediction`.
+                 mean: bool = False, memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET
+                 ) -> Predictor:
+    """Build `predict(params, key, batch, controls=None) -> Prediction`, jitted per shape.
 
     `controls` overrides the traced switches (n, ghost, tau); by default the config's n and
     ghost with tau = 0.03. `with_graph=False` drops the per-step graphs (they dominate memory
     for large K and N) when only trajectories are needed. `mean=True` predicts every step as
     the mean of the head's Gaussian (GST (P) without sampling its displacements). A batch
     holds T = obs_len observed steps (`make_batch`), or obs_len + pred_len (windows with
-    their future, evaluation).
+    their future, evaluation). memory_budget_bytes: what one call's program may use; larger
+    problems compute their samples in chunks, with the same samples (module docstring).
     """
     if num_samples < 1:
         raise ValueError(f"num_samples must be at least 1, got {num_samples}")
+    if memory_budget_bytes < 1:
+        raise ValueError(f"memory_budget_bytes must be positive, got {memory_budget_bytes}")
+    return Predictor(config, num_samples, with_graph, mean, memory_budget_bytes)
+
+
+class Predictor:
+    """`make_predict`'s function: a chunking per batch shape, chosen on its first call, and
+    one jitted program per chunking. Inside the caller's `jit` or `vmap` it is the single
+    vmap over samples, unchecked: the caller's program is the caller's to size."""
+
+    def __init__(self, config: ModelConfig, num_samples: int, with_graph: bool, mean: bool,
+                 memory_budget_bytes: int):
+        self.config, self.num_samples = config, num_samples
+        self.with_graph, self.mean = with_graph, mean
+        self.memory_budget_bytes = memory_budget_bytes
+        self._programs: dict[tuple[int, int | None], Any] = {}
+        self._chunkings: dict[tuple, Chunking] = {}
+
+    def __call__(self, params, key: jax.Array, batch: SceneBatch,
+                 controls: Controls | None = None) -> Prediction:
+        args = (params, key, batch, controls)
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(args)):
+            return self._program(self.num_samples, None)(*args)
+        chunking = self.chunking(*args)
+        return self._program(chunking.samples_at_once, chunking.observed_steps_at_once)(*args)
+
+    def chunking(self, params, key: jax.Array, batch: SceneBatch,
+                 controls: Controls | None = None) -> Chunking:
+        """The chunking of this batch's shape, chosen (and compiled) on its first call."""
+        signature = (tuple(np.shape(leaf) for leaf in jax.tree.leaves(batch)), controls is None)
+        if signature not in self._chunkings:
+            self._chunkings[signature] = self._choose((params, key, batch, controls))
+        return self._chunkings[signature]
+
+    def _choose(self, args) -> Chunking:
+        """The fastest chunking within the budget (and the memory available): today's single
+        vmap if it fits, else as many samples at once as fit, observing step by step."""
+        num_samples = self.num_samples
+        available = available_memory(_device_of(args[2].positions))
+        budget = self.memory_budget_bytes
+        target = budget if available is None else min(budget, available[0])
+        whole = self._measure(num_samples, None, args)
+        if whole.bytes_needed is None or whole.bytes_needed <= target:
+            return whole
+        least = self._measure(1, 1, args)
+        if available is not None and least.bytes_needed > available[0]:
+            raise DataError(_refusal(num_samples, args[2], self.config.obs_len,
+                                     least.bytes_needed, *available))
+        # The need grows linearly with the samples at once (XLA: 0.16 + 0.31 c GiB at
+        # N = 300); the slope through `whole` overestimates it where the observed steps at
+        # once dominate, and every candidate is measured before it is chosen.
+        per_sample = (whole.bytes_needed - least.bytes_needed) / max(num_samples - 1, 1)
+        while True:
+            room = CHUNKING_SLACK * target - least.bytes_needed
+            chunk = min(num_samples, 1 + int(room // max(per_sample, 1)))
+            if chunk <= 1:
+                return least
+            candidate = self._measure(chunk, 1, args)
+            if candidate.bytes_needed <= target:
+                return candidate
+            per_sample = (candidate.bytes_needed - least.bytes_needed) / (chunk - 1)
+
+    def _measure(self, samples_at_once: int, observed_steps_at_once: int | None,
+                 args) -> Chunking:
+        """Compile a chunking's program for these arguments (jit's cache keeps it: the call
+        that follows does not compile again) and read XLA's estimate of its memory."""
+        program = self._program(samples_at_once, observed_steps_at_once)
+        stats = program.lower(*args).compile().memory_analysis()
+        if stats is None:
+            return Chunking(samples_at_once, observed_steps_at_once, None, None)
+        positions = args[2].positions
+        on_cpu = _device_of(positions).platform == "cpu"
+        # Host devices of one CPU (XLA_FLAGS device count) share its memory.
+        xla_bytes = (_device_count(positions) if on_cpu else 1) * (
+            stats.temp_size_in_bytes + stats.argument_size_in_bytes + stats.output_size_in_bytes)
+        return Chunking(samples_at_once, observed_steps_at_once, xla_bytes,
+                        int(xla_bytes * CPU_RUNTIME_MARGIN) if on_cpu else xla_bytes)
+
+    def _program(self, samples_at_once: int, observed_steps_at_once: int | None):
+        chunking = (samples_at_once, observed_steps_at_once)
+        if chunking not in self._programs:
+            self._programs[chunking] = _jitted_predict(
+                self.config, self.num_samples, self.with_graph, self.mean, *chunking)
+        return self._programs[chunking]
+
+
+def _jitted_predict(config: ModelConfig, num_samples: int, with_graph: bool, mean: bool,
+                    samples_at_once: int, observed_steps_at_once: int | None):
+    """The jitted predict of one chunking; sample k uses key k of `split(key, num_samples)`
+    in every chunking, so that they all draw the same samples."""
     steps = (config.obs_len, config.obs_len + config.pred_len)
 
     @jax.jit
@@ -71,7 +206,8 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
             controls = Controls.from_config(config)
 
         # The observed steps' edge probabilities do not depend on the sample: computed once.
-        observed_probs = (observed_edge_probabilities(params, batch, config, controls)
+        observed_probs = (observed_edge_probabilities(params, batch, config, controls,
+                                                      steps_at_once=observed_steps_at_once)
                           if config.selects_edges else None)
 
         def one_sample(sample_key):
@@ -80,8 +216,11 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
             graph = (out.sampled_edges.sum(axis=-2), out.edge_probs) if with_graph else (None, None)
             return out.displacements, out.mu, out.sigma, out.corr, graph
 
-        displacements, mu, sigma, corr, (adjacency, probs) = jax.vmap(one_sample)(
-            jax.random.split(key, num_samples))
+        keys = jax.random.split(key, num_samples)
+        # lax.map vmaps within a chunk and loops over chunks: memory of one chunk at a time.
+        sampled = (jax.vmap(one_sample)(keys) if samples_at_once == num_samples
+                   else jax.lax.map(one_sample, keys, batch_size=samples_at_once))
+        displacements, mu, sigma, corr, (adjacency, probs) = sampled
         keep = batch.predicted_mask(config.obs_len)
         last_position = batch.positions[:, config.obs_len - 1] * keep[..., None]
         positions = jnp.where(keep[:, None, :, None] > 0,
@@ -91,3 +230,124 @@ def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool
                           predicted_mask=keep)
 
     return predict
+
+
+def _device_of(array) -> jax.Device:
+    devices = getattr(getattr(array, "sharding", None), "device_set", None)
+    return min(devices, key=lambda d: d.id) if devices else jax.devices()[0]
+
+
+def _device_count(array) -> int:
+    devices = getattr(getattr(array, "sharding", None), "device_set", None)
+    return len(devices) if devices else 1
+
+
+def _refusal(num_samples: int, batch: SceneBatch, obs_len: int, needed: int, available: int,
+             source: str) -> str:
+    """The one line that refuses a prediction that cannot fit."""
+    seen = np.asarray(batch.position_mask)[:, :obs_len].any(axis=1).sum(axis=-1)
+    people = int(seen.max()) if seen.size else 0
+    scenes = (f"a scene of {people} people" if len(seen) == 1
+              else f"{len(seen)} scenes of up to {people} people")
+    return (f"predicting {num_samples} samples of {scenes} needs {_size(needed)} at least "
+            f"(one sample at a time); {_size(available)} is available ({source}); use fewer "
+            "people per scene or more memory")
+
+
+def _size(num_bytes: int) -> str:
+    for unit, power, digits in (("GiB", 30, 1), ("MiB", 20, 0), ("KiB", 10, 0)):
+        if num_bytes >= 2 ** power:
+            return f"{num_bytes / 2 ** power:.{digits}f} {unit}"
+    return f"{max(num_bytes, 0)} bytes"
+
+
+def available_memory(device: jax.Device) -> tuple[int, str] | None:
+    """(bytes this process may still allocate on `device`, where that figure comes from), or
+    None where unknown. A CPU: the least of the machine's MemAvailable, what is left under
+    this process's cgroup limits and under its address-space limit (`ulimit -v`)."""
+    if device.platform != "cpu":
+        stats = device.memory_stats() or {}
+        if "bytes_limit" not in stats:
+            return None
+        return stats["bytes_limit"] - stats.get("bytes_in_use", 0), f"free on {device}"
+    candidates = []
+    if (meminfo := _read_kib("/proc/meminfo", "MemAvailable:")) is not None:
+        candidates.append((meminfo, "MemAvailable of this machine"))
+    try:
+        proc_cgroup = Path("/proc/self/cgroup").read_text()
+    except OSError:
+        proc_cgroup = ""
+    if (left := cgroup_headroom(proc_cgroup, CGROUP_ROOT)) is not None:
+        candidates.append((left, "under this process's cgroup memory limit"))
+    if (left := _address_space_left()) is not None:
+        candidates.append((left, "under this process's address-space limit, ulimit -v"))
+    return min(candidates) if candidates else None
+
+
+def _address_space_left() -> int | None:
+    """What `ulimit -v` (RLIMIT_AS) leaves this process; None without a limit."""
+    try:
+        import resource                                     # POSIX only
+    except ImportError:
+        return None
+    limit, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if limit == resource.RLIM_INFINITY:
+        return None
+    return limit - (_read_kib("/proc/self/status", "VmSize:") or 0)
+
+
+def cgroup_headroom(proc_cgroup: str, root: Path) -> int | None:
+    """What this process's memory cgroups (`/proc/self/cgroup` text, mounted at `root`) and
+    their parents still admit: the least of limit - (usage - inactive file pages), which the
+    kernel reclaims before it kills; None where no limit is set. cgroup v2 and v1."""
+    headroom = []
+    for line in proc_cgroup.splitlines():
+        if line.count(":") < 2:
+            continue
+        _, controllers, path = line.split(":", 2)
+        if controllers == "":
+            directory, files = root, ("memory.max", "memory.current", "inactive_file")
+        elif "memory" in controllers.split(","):
+            directory, files = root / "memory", ("memory.limit_in_bytes",
+                                                 "memory.usage_in_bytes", "total_inactive_file")
+        else:
+            continue
+        parts = [part for part in path.split("/") if part]
+        for depth in range(len(parts), -1, -1):
+            limit, usage, inactive = _cgroup_files(directory.joinpath(*parts[:depth]), files)
+            if limit is not None and usage is not None and limit < NO_LIMIT:
+                headroom.append(limit - usage + (inactive or 0))
+    return min(headroom) if headroom else None
+
+
+def _cgroup_files(directory: Path, files: tuple[str, str, str]):
+    """(limit, usage, inactive file bytes) of one cgroup directory; None for what is absent."""
+    limit_file, usage_file, inactive_key = files
+
+    def number(name):
+        try:
+            text = (directory / name).read_text().strip()
+        except OSError:
+            return None
+        return NO_LIMIT if text == "max" else int(text)
+
+    inactive = None
+    try:
+        for line in (directory / "memory.stat").read_text().splitlines():
+            name, _, value = line.partition(" ")
+            if name == inactive_key:
+                inactive = int(value)
+    except OSError:
+        pass
+    return number(limit_file), number(usage_file), inactive
+
+
+def _read_kib(path: str, field: str) -> int | None:
+    """A `field: N kB` line of a /proc file, in bytes."""
+    try:
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(field):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None

@@ -5,7 +5,9 @@ MODEL is a work directory (or one of its checkpoints), SWEEP_DIR:MEMBER or pretr
 Every window of the split gets a scene row, its observed tracks and K sampled futures of every
 predicted pedestrian (rows with prediction_number and scene_id), in metres and the data's own
 frame ids. `python -m gst_jax.evaluate --predictions FILE --data PATH` scores such a file; with
-the same seed it scores exactly as `python -m gst_jax.evaluate MODEL` does.
+the same seed it scores exactly as `python -m gst_jax.evaluate MODEL` does. A crowd too
+large for `--memory-budget` samples in chunks; one that cannot fit in the memory available,
+even one sample at a time, is refused in one line before anything is allocated.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 
 from gst_jax import cli
 from gst_jax.evaluation import write_run_predictions
+from gst_jax.predict import DEFAULT_MEMORY_BUDGET
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 
@@ -25,14 +28,18 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_data_flags(parser, of_run=True)
     cli.add_sampling_flags(parser)
     parser.add_argument("--out", required=True, help="the prediction file to write (ndjson)")
+    parser.add_argument("--memory-budget", type=cli.positive_float, metavar="GIB",
+                        default=DEFAULT_MEMORY_BUDGET / 2 ** 30, help="memory one batch's "
+                        "program may use; larger crowds sample in chunks (default: %(default)s)")
     cli.run(predict, parser, argv)
 
 
 def predict(args) -> None:
-    run = load_model(args.model, args.epoch)
+    run = load_model(args.model, args.epoch).with_candidates(args.candidates)
     data_config = cli.data_config(args, base=run.data_config)
     rows = write_run_predictions(run, data_config, args.split, Path(args.out),
-                                 num_samples=args.samples, seed=args.seed, progress=Progress())
+                                 num_samples=args.samples, seed=args.seed, progress=Progress(),
+                                 memory_budget_bytes=int(args.memory_budget * 2 ** 30))
     cli.say(f"written: {args.out} ({rows} rows: {data_config.scene}, {args.split} split, "
             f"{args.samples} samples of {run.name})")
 

@@ -1,11 +1,15 @@
 """Pretrained parameters shipped with the package: `load_pretrained('eth')` -> (config, params).
 
-Each model lives in `gst_jax/pretrained/<scene>_<d|p>/`: `params/` (orbax) and `meta.json`
-(the model config, the run's data and training configs, the metrics measured on its test
-split, and a small fixed-key check that `tests/test_pretrained.py` reproduces).
-`gst_jax.pretrained.export` adds one from a trained run:
+Each model lives in `gst_jax/pretrained/<name>/`: `model.safetensors` and `config.json` (the
+weights format anyone can load, `gst_jax.model.weights`: the parameters, the model config, the
+run's data and training configs, the SHA-256 checked at every load) and `meta.json`, its
+record: the same configs, where it came from, its licence and the commands that made it, the
+metrics measured on its test split and a small fixed-key check that `tests/test_pretrained.py`
+reproduces. A model others made carries their licence beside it (`LICENSE.*`); SOURCES.md
+lists where every shipped model came from. `gst_jax.pretrained.export` adds one:
 
     python -m gst_jax.pretrained export runs/eth-paper-d-n1-e200-seed1000 --name eth_d
+    python -m gst_jax.pretrained export pretrained:eth_d --out eth_d   # a copy to hand over
     python -m gst_jax.pretrained list
 """
 
@@ -14,37 +18,30 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import jax
-import orbax.checkpoint as ocp
-
 from gst_jax.config import ModelConfig
-from gst_jax.model import init_params
+from gst_jax.model import weights
 
 ROOT = Path(__file__).parent
 
 
 def available() -> list[str]:
     """Names of the shipped models, e.g. ['eth_d', 'eth_p']."""
-    return sorted(p.name for p in ROOT.iterdir() if (p / "meta.json").exists())
+    return weights.shipped()
 
 
 def folder(name: str) -> Path:
-    """The folder of a shipped model; 'eth' means GST (D) on eth ('eth_d')."""
-    names = available()
-    for candidate in (name, f"{name}_d"):
-        if candidate in names:
-            return ROOT / candidate
-    raise KeyError(f"no pretrained model {name!r}; shipped: {', '.join(names) or 'none'}")
+    """The folder of a shipped model; 'eth' means GST (D) on eth ('eth_d'). Refuses an
+    unknown name with a RunError listing those shipped."""
+    return weights.shipped_folder(name)
 
 
 def load_meta(name: str) -> dict:
-    return json.loads((folder(name) / "meta.json").read_text())
+    """A shipped model's record (meta.json)."""
+    return json.loads((folder(name) / weights.SHIPPED_RECORD).read_text())
 
 
-def load_pretrained(name: str):
-    """(ModelConfig, params) of a shipped model ('eth' or 'eth_d', 'eth_p', ...)."""
-    config = ModelConfig.from_dict(load_meta(name)["model"])
-    like = jax.eval_shape(lambda key: init_params(config, key), jax.random.key(0))
-    with ocp.StandardCheckpointer() as checkpointer:
-        params = checkpointer.restore((folder(name) / "params").absolute(), like)
-    return config, params
+def load_pretrained(name: str) -> tuple[ModelConfig, dict]:
+    """(ModelConfig, params) of a shipped model ('eth' or 'eth_d', 'eth_p', ...), checked
+    against its checksum and its config's parameter layout."""
+    loaded = weights.load(folder(name))
+    return loaded.model_config, loaded.params

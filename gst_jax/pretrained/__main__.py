@@ -1,8 +1,11 @@
-"""Shipped models: `python -m gst_jax.pretrained list`, `... export RUN --name NAME`."""
+"""Shipped models: `python -m gst_jax.pretrained list`, `... export MODEL --name NAME` (ship it),
+`... export MODEL --out DIR` (DIR/model.safetensors + config.json, read by load_model(DIR))."""
 
 from __future__ import annotations
 
 import json
+import shlex
+import sys
 
 from gst_jax import cli, pretrained
 from gst_jax.config import DataConfig
@@ -12,25 +15,41 @@ from gst_jax.data import data_name
 def main(argv: list[str] | None = None) -> None:
     parser = cli.parser("gst_jax.pretrained", __doc__)
     commands = parser.add_subparsers(dest="command", required=True)
-    export = commands.add_parser("export", help="copy a trained run into gst_jax/pretrained/<name>")
-    export.add_argument("run", help="work directory of `python -m gst_jax.train`")
-    export.add_argument("--name", required=True, help="e.g. eth_d")
+    export = commands.add_parser("export", help="a model as safetensors + config.json: into "
+                                 "gst_jax/pretrained/<name> (--name) or a folder (--out)")
+    export.add_argument("run", help="a work directory, SWEEP_DIR:MEMBER, pretrained:NAME, a "
+                        "weights folder, or a CrowdNav++ checkpoint folder (gst_updated/results/"
+                        "<run>/sj, read without torch)")
+    where = export.add_mutually_exclusive_group(required=True)
+    where.add_argument("--name", help="ship it as gst_jax/pretrained/NAME, e.g. eth_d")
+    where.add_argument("--out", metavar="DIR", help="write DIR/model.safetensors, DIR/config.json")
+    export.add_argument("--format", choices=["safetensors"], default="safetensors",
+                        help="the weights format (safetensors, the only one written)")
     export.add_argument("--check-data", default=None, metavar="PATH",
-                        help="data of the fixed-key check where the run's is not bundled: a path "
-                             "into the bundled data (e.g. samples/sim_crowds)")
+                        help="with --name, data of the fixed-key check where the run's is not "
+                             "bundled: a path into the bundled data (e.g. samples/sim_crowds)")
     export.add_argument("--check-fps", type=cli.positive_float, default=None,
                         help="frame ids per second of --check-data")
+    export.add_argument("--source", help="where the parameters came from (default: the model)")
+    export.add_argument("--licence", help="their licence and attribution, one line")
+    export.add_argument("--licence-file", action="append", default=[], metavar="FILE",
+                        help="copied beside the weights (a LICENSE as LICENSE.<its folder>)")
     listing = commands.add_parser("list", help="shipped models and their measured test AOE/FOE")
     listing.add_argument("--json", action="store_true", help="print every model's meta.json")
-    cli.run(command, parser, argv)
+    argv = sys.argv[1:] if argv is None else argv
+    command_line = shlex.join(["python", "-m", "gst_jax.pretrained", *argv])
+    cli.run(lambda args: command(args, command_line), parser, argv)
 
 
-def command(args) -> None:
+def command(args, command_line: str) -> None:
     if args.command == "export":
-        from gst_jax.pretrained.export import export   # evaluation code, only when exporting
+        from gst_jax.pretrained import export   # evaluation code, only when exporting
+        given = dict(source=args.source, licence=args.licence, licence_files=args.licence_file,
+                     command=command_line)
         check = args.check_data and DataConfig(scene=data_name(args.check_data),
                                                data=args.check_data, fps=args.check_fps)
-        print(f"written: {export(args.run, args.name, check or None)}")
+        print("written:", export.export_weights(args.run, args.out, **given) if args.out
+              else export.export(args.run, args.name, check or None, **given))
         return
     metas = {name: pretrained.load_meta(name) for name in pretrained.available()}
     if args.json:
@@ -43,6 +62,8 @@ def command(args) -> None:
         if per_scene := meta.get("test_metrics_per_scene"):      # the general model
             print("  per scene AOE / FOE: " + ", ".join(
                 f"{scene} {m['aoe']:.3f} / {m['foe']:.3f}" for scene, m in per_scene.items()))
+        if meta.get("licence"):
+            print(f"  licence: {meta['licence']}")
 
 
 if __name__ == "__main__":

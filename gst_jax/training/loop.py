@@ -18,8 +18,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import os
+import re
 import time
+import warnings
 from functools import partial
+from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -29,9 +33,9 @@ import numpy as np
 from gst_jax import data
 from gst_jax.compiles import count_compiles
 from gst_jax.config import DataConfig, ModelConfig, TimeGrid, TrainConfig
-from gst_jax.errors import DataError, NonFiniteError, RunError
+from gst_jax.errors import DataError, Interrupted, NonFiniteError, RunError
 from gst_jax.evaluation import evaluate_params
-from gst_jax.io.interrupts import interrupts_noticed
+from gst_jax.io.interrupts import set_forced_exit_note, stop_requested, stops_noted
 from gst_jax.io.workdir import WorkDir, code_version, run_config, same_run
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
@@ -74,6 +78,150 @@ class Training:
         return {name: float(v) for name, v in zip(self.member_names, values)}
 
 
+@dataclasses.dataclass
+class _EpochSoFar:
+    """What an epoch has summed so far, saved with a checkpoint taken inside it."""
+
+    steps_done: int
+    loss_sum: np.ndarray                   # (members,) float64: loss x scenes
+    non_finite: np.ndarray                 # (members,) int
+    scenes: float = 0.0
+    seconds: float = 0.0                   # of training, also before a resume
+    compiles: int = 0
+    compile_seconds: float = 0.0
+
+    @classmethod
+    def fresh(cls, members: int) -> "_EpochSoFar":
+        return cls(0, np.zeros(members), np.zeros(members, int))
+
+    def to_json(self, epoch: int) -> dict:
+        return {"epoch": epoch, **dataclasses.asdict(self), "loss_sum": self.loss_sum.tolist(),
+                "non_finite": self.non_finite.tolist()}
+
+    @classmethod
+    def from_json(cls, record: dict) -> "_EpochSoFar":
+        fields = {k: v for k, v in record.items() if k != "epoch"}
+        return cls(**{**fields, "loss_sum": np.array(fields["loss_sum"], np.float64),
+                      "non_finite": np.array(fields["non_finite"], int)})
+
+
+class _Saves:
+    """Where a training's state is saved: a checkpoint every `checkpoint_every` epochs
+    (checkpoints/), and one inside an epoch when a stop signal comes (interrupted/, until a
+    later save). It keeps the note that a stop ending the process early leaves, and turns a
+    failed write (a full disk) into one line that says what the rerun will do."""
+
+    def __init__(self, workdir: WorkDir, config: dict):
+        self.workdir, self.config = workdir, config
+        self.epochs = workdir.checkpointer()
+        self.interrupted = workdir.interrupted_checkpointer()
+        self.saved: str | None = None       # e.g. "epoch 5", "epoch 3 at step 7"
+
+    def close(self) -> None:
+        self.epochs.close()
+        self.interrupted.close()
+
+    @property
+    def rerun(self) -> str:
+        if self.saved is None:
+            return f"rerunning the same command starts fresh in {self.workdir.path}"
+        return f"rerunning the same command continues from {self.saved}"
+
+    def noted(self, saved: str | None) -> None:
+        self.saved = saved
+        set_forced_exit_note(f"interrupted before the next save; {self.rerun}")
+
+    def save_epoch(self, epoch: int, state: TrainState, records: list) -> None:
+        self._write(lambda: self.epochs.save(epoch, state, self.config, records),
+                    f"the checkpoint of epoch {epoch}", self.epochs.directory)
+        if self.interrupted.latest_epoch is not None:
+            self.interrupted.discard()
+        self.noted(f"epoch {epoch}")
+
+    def save_inside(self, epoch: int, so_far: _EpochSoFar, state: TrainState,
+                    records: list) -> None:
+        """A checkpoint after `so_far.steps_done` steps of `epoch` (0: the epochs before it
+        complete)."""
+        def write():
+            self.interrupted.discard()
+            self.interrupted.save(epoch, state, self.config, records, so_far.to_json(epoch))
+        self._write(write, f"the checkpoint inside epoch {epoch}", self.interrupted.directory)
+        self.noted(f"epoch {epoch - 1}" if so_far.steps_done == 0
+                   else f"epoch {epoch} at step {so_far.steps_done}")
+
+    def append_metrics(self, record: dict) -> None:
+        self._write(lambda: self.workdir.append_metrics(record), "a line of metrics.jsonl",
+                    self.workdir.metrics_path)
+
+    def write_metrics(self, records: list) -> None:
+        self._write(lambda: self.workdir.write_metrics(records), "metrics.jsonl",
+                    self.workdir.metrics_path)
+
+    def _write(self, write: Callable[[], None], what: str, where: Path) -> None:
+        try:
+            write()
+        except Exception as error:
+            reason = _os_error_reason(error)
+            if reason is None:
+                raise
+            raise RunError(f"could not write {what} to {where} ({reason}); nothing "
+                           f"half-written is used: {self.rerun}") from None
+
+
+def _os_error_reason(error: BaseException) -> str | None:
+    """Why the system refused a write behind `error` ('No space left on device'), which orbax
+    and tensorstore wrap in other exceptions (tensorstore names only its errno), or None."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, OSError):
+            return error.strerror or str(error)
+        if code := re.search(r"os_error_code='(\d+)'", str(error)):
+            return os.strerror(int(code.group(1)))
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return None
+
+
+def _resume(training: Training, saves: _Saves, config: dict,
+            progress: Progress) -> tuple[TrainState, list, int, _EpochSoFar | None]:
+    """(state, records, epoch to start, what that epoch has done) from the newer of the
+    newest intact checkpoint and an interrupted epoch's; a fresh state where there is none."""
+    like = jax.eval_shape(training.init_state)
+    state, records, last_epoch, so_far = None, [], 0, None
+    if saves.epochs.latest_epoch is not None:
+        restored = saves.epochs.restore(like, fall_back=True)
+        _check_same_run(restored.config, config, saves.workdir)
+        state, records, last_epoch = restored.state, restored.records, restored.epoch
+        saves.epochs.discard_after(last_epoch)          # damaged ones that were skipped
+        saves.noted(f"epoch {last_epoch}")
+    if (saves.interrupted.latest_epoch or 0) > last_epoch:
+        try:
+            restored = saves.interrupted.restore(like)
+        except RunError as error:
+            warnings.warn(f"{error}; {saves.rerun}", stacklevel=2)
+        else:
+            _check_same_run(restored.config, config, saves.workdir)
+            state, records = restored.state, restored.records
+            last_epoch, so_far = restored.epoch - 1, _EpochSoFar.from_json(restored.progress)
+            saves.noted(f"epoch {restored.epoch} at step {so_far.steps_done}"
+                        if so_far.steps_done else f"epoch {last_epoch}")
+    elif saves.interrupted.latest_epoch is not None:  # older than a checkpoint saved since
+        saves.interrupted.discard()
+    if state is None:
+        progress.line(f"starting fresh: no checkpoint in {saves.workdir.path}")
+        saves.noted(None)
+        return training.init_state(), [], 1, None
+    inside = " at step " in saves.saved          # "epoch 3 at step 7", else "epoch 5"
+    progress.line(f"resuming {saves.workdir.path} {'from' if inside else 'after'} {saves.saved}")
+    return state, records, last_epoch + 1, so_far
+
+
+def _check_same_run(stored_config: dict, config: dict, workdir: WorkDir) -> None:
+    if not same_run(stored_config, config):
+        raise RunError(f"the checkpoints in {workdir.path} belong to a run with a different "
+                       "configuration; choose another --workdir or delete it")
+
+
 def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: data.WindowSet,
                  train_config: TrainConfig, *, stop_on_non_finite: bool,
                  after_epoch: Callable[[int, TrainState], dict] | None = None,
@@ -82,42 +230,48 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     records of every epoch.
 
     config: the run's JSON config, stored with every checkpoint. after_epoch: extra fields
-    of an epoch's metrics record (validation), given the epoch and its final state.
+    of an epoch's metrics record (validation), given the epoch and its final state. A stop
+    signal (Ctrl-C, SIGTERM) ends it after the step under way: the state there is saved, and
+    `Interrupted` says what a rerun continues from.
     """
     progress = progress or Progress()
-    checkpointer = workdir.checkpointer()
-    if checkpointer.latest_epoch is None:
-        state, records, last_epoch = training.init_state(), [], 0
-    else:
-        state, stored_config, records, last_epoch = checkpointer.restore(
-            jax.eval_shape(training.init_state), fall_back=True)
-        if not same_run(stored_config, config):
-            raise RunError(f"the checkpoints in {workdir.path} belong to a run with a different "
-                           "configuration; choose another --workdir or delete it")
-        checkpointer.discard_after(last_epoch)          # damaged ones that were skipped
-        progress.line(f"resuming {workdir.path} after epoch {last_epoch}")
-    # One line per epoch up to the checkpoint, each saved with it: what a killed run wrote
-    # after the checkpoint goes, what it did not get to write comes back.
-    workdir.write_metrics(records)
-    start_epoch = last_epoch + 1
-    train_step = training.train_step
-    state = train_step.place(state)
+    with stops_noted(), contextlib.closing(_Saves(workdir, config)) as saves:
+        state, records, start_epoch, so_far = _resume(training, saves, config, progress)
+        # One line per epoch up to the checkpoint, each saved with it: what a killed run wrote
+        # after the checkpoint goes, what it did not get to write comes back.
+        saves.write_metrics(records)
+        train_step = training.train_step
+        state = train_step.place(state)
 
-    steps_per_epoch = math.ceil(len(train_set) / train_config.batch_size)
-    total_steps = (train_config.epochs - start_epoch + 1) * steps_per_epoch
-    members = len(training.seeds)
-    clock, compile_seconds = StepClock(), 0.0  # compile_seconds: those of earlier epochs
-    with interrupts_noticed() as check_interrupt, contextlib.closing(checkpointer):
+        steps_per_epoch = math.ceil(len(train_set) / train_config.batch_size)
+        first_step = so_far.steps_done if so_far else 0
+        total_steps = (train_config.epochs - start_epoch + 1) * steps_per_epoch - first_step
+        members = len(training.seeds)
+        clock, compile_seconds = StepClock(), 0.0  # compile_seconds: those of earlier epochs
+
+        unsaved = False                 # steps taken since the last save (or the resume)
+
+        def stop_if_requested(epoch: int, epoch_so_far: _EpochSoFar) -> None:
+            signal_name = stop_requested()
+            if signal_name is None:
+                return
+            if unsaved:
+                saves.save_inside(epoch, epoch_so_far, state, records)
+            raise Interrupted(f"interrupted ({signal_name}): {saves.rerun}")
+
         for epoch in range(start_epoch, train_config.epochs + 1):
+            epoch_so_far = so_far if epoch == start_epoch and so_far else (
+                _EpochSoFar.fresh(members))
+            stop_if_requested(epoch, epoch_so_far)
             hparams = train_step.place(training.hparams(epoch))
-            epoch_start = time.perf_counter()
-            loss_sum, non_finite, scenes = np.zeros(members), np.zeros(members, int), 0.0
+            resumed_at = time.perf_counter() - epoch_so_far.seconds
             steps = data.training_batches(train_set, batch_size=train_config.batch_size,
                                           seed=train_config.seed, epoch=epoch,
                                           slots_multiple=train_step.slots_multiple,
-                                          one_micro_batch=train_step.one_micro_batch)
+                                          one_micro_batch=train_step.one_micro_batch,
+                                          first_step=epoch_so_far.steps_done)
             with count_compiles() as compiles:
-                for step, packed in enumerate(steps):
+                for step, packed in enumerate(steps, start=epoch_so_far.steps_done):
                     keys = train_step.place(training.step_keys(epoch, step))
                     state, metrics = train_step(state, keys, packed, hparams)
                     loss = np.atleast_1d(np.asarray(metrics["loss"], np.float64))
@@ -126,32 +280,41 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                         raise NonFiniteError(
                             f"non-finite loss or gradient at epoch {epoch}, batch {step} "
                             f"(loss {loss[0]}); parameters of the last checkpoint (epoch "
-                            f"{checkpointer.latest_epoch}) are kept in "
+                            f"{saves.epochs.latest_epoch}) are kept in "
                             f"{workdir.path}/checkpoints")
-                    loss_sum += np.where(np.isfinite(loss), loss, 0.0) * packed.num_scenes
-                    non_finite += ~finite
-                    scenes += packed.num_scenes
-                    done = (epoch - start_epoch) * steps_per_epoch + step + 1
+                    epoch_so_far.loss_sum += np.where(np.isfinite(loss), loss, 0.0) * packed.num_scenes
+                    epoch_so_far.non_finite += ~finite
+                    epoch_so_far.scenes += packed.num_scenes
+                    epoch_so_far.steps_done = step + 1
+                    epoch_so_far.seconds = time.perf_counter() - resumed_at
+                    unsaved = True
+                    done = (epoch - start_epoch) * steps_per_epoch + step + 1 - first_step
                     eta = clock.eta(done, total_steps - done, compile_seconds + compiles.seconds)
                     progress.live(
                         f"epoch {epoch}/{train_config.epochs} step {step + 1}/{steps_per_epoch} "
-                        f"{scenes / max(time.perf_counter() - epoch_start, 1e-9):6.1f} scenes/s "
-                        f"loss {float(np.mean(loss_sum)) / scenes:.4f} "
+                        f"{epoch_so_far.scenes / max(epoch_so_far.seconds, 1e-9):6.1f} scenes/s "
+                        f"loss {float(np.mean(epoch_so_far.loss_sum)) / epoch_so_far.scenes:.4f} "
                         f"ETA {eta}")
-                    check_interrupt()
+                    if stop_requested() and step + 1 < steps_per_epoch:   # else at its end
+                        epoch_so_far.compiles += compiles.count
+                        epoch_so_far.compile_seconds += compiles.seconds
+                        stop_if_requested(epoch, epoch_so_far)
 
-            epoch_time = time.perf_counter() - epoch_start
+            epoch_time = time.perf_counter() - resumed_at
             compile_seconds += compiles.seconds
-            record = {"epoch": epoch, "loss": training.per_member(loss_sum / max(scenes, 1.0)),
+            scenes = max(epoch_so_far.scenes, 1.0)
+            record = {"epoch": epoch, "loss": training.per_member(epoch_so_far.loss_sum / scenes),
                       "tau": float(np.ravel(hparams.controls.tau)[0]),
                       "learning_rate": float(np.ravel(hparams.learning_rate)[0]),
-                      "epoch_time_s": epoch_time, "scenes_per_s": scenes / epoch_time,
-                      "step": int(np.max(state.step)), "compiles": compiles.count,
-                      "compile_time_s": compiles.seconds, "code": code_version()}
-            if non_finite.any():
+                      "epoch_time_s": epoch_time, "scenes_per_s": epoch_so_far.scenes / epoch_time,
+                      "step": int(np.max(state.step)),
+                      "compiles": epoch_so_far.compiles + compiles.count,
+                      "compile_time_s": epoch_so_far.compile_seconds + compiles.seconds,
+                      "code": code_version()}
+            if epoch_so_far.non_finite.any():
                 names = training.member_names or ("run",)
-                record["non_finite_steps"] = {name: int(v) for name, v in zip(names, non_finite)
-                                              if v}
+                record["non_finite_steps"] = {name: int(v) for name, v
+                                              in zip(names, epoch_so_far.non_finite) if v}
             if after_epoch is not None:
                 record.update(after_epoch(epoch, state))
             # Wall-clock time, so that a log shows time spent between epochs (a stall, a slow
@@ -159,9 +322,12 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
             record["finished_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             records.append(record)
             if epoch % train_config.checkpoint_every == 0 or epoch == train_config.epochs:
-                checkpointer.save(epoch, state, config, records)
-            workdir.append_metrics(record)
+                saves.save_epoch(epoch, state, records)
+                unsaved = False
+            saves.append_metrics(record)
             progress.line(_format_record(record))
+        if saves.interrupted.latest_epoch is not None:     # the run ended after it
+            saves.interrupted.discard()
     return state, records
 
 
@@ -182,9 +348,7 @@ def load_train_set(data_config: DataConfig, train_config: TrainConfig,
     if train_config.max_train_windows:
         train_set = train_set.subset(range(min(train_config.max_train_windows, len(train_set))))
     if not len(train_set):
-        files = ", ".join(path for path, _ in train_set.files) or "no files"
-        raise DataError(f"no training windows in {data_config.scene} ({data_config.protocol} "
-                             f"protocol): none of {files} gives one")
+        raise DataError(data.no_windows_message(train_set, data_config, "train", grid))
     return train_set
 
 
@@ -192,10 +356,14 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
         workdir: str | WorkDir, *, progress: Progress | None = None,
         devices: Devices | None = None) -> dict:
     """Train (or resume) one run in `workdir`; returns the summary also written there.
-    devices: each step's scenes are split over them (`gst_jax.parallel`)."""
+    devices: each step's scenes are split over them (`gst_jax.parallel`). A fine-tuning
+    (`train_config.init`) with a validation split selects its epoch there (`_Selection`) and
+    reports the selected model beside the one it started from and constant velocity on the
+    test windows."""
     workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
     train_set = load_train_set(data_config, train_config, model_config.grid)
     seed = train_config.seed
+    source = None
     if train_config.init:
         source = load_model(train_config.init)
         check_same_layout(model_config, source)
@@ -203,29 +371,118 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     else:
         init_state = partial(create_train_state, model_config, parameter_key(seed))
     config = run_config(model_config, data_config, train_config)
-    workdir.prepare(config)
     training = Training(
         init_state=init_state,
         train_step=make_train_step(model_config, rotate=train_config.rotate, devices=devices),
         hparams=lambda epoch: hparams_for_epoch(model_config, train_config, epoch),
         seeds=(seed,))
+    after_epoch = _validation(model_config, data_config, train_config, devices)
+    selection = None
+    if source is not None and data.has_validation(data_config):
+        selection = _Selection(model_config, data_config, train_config, workdir, config, devices)
+        after_epoch = selection.after_epoch
+    elif source is not None:
+        warnings.warn(f"protocol {data_config.protocol!r} has no validation split, so the "
+                      "fine-tuning keeps its last epoch, however it does; --protocol paper-val "
+                      "selects the epoch on windows held out of the training data",
+                      stacklevel=2)
     start = time.perf_counter()
-    _, records = train_epochs(
-        training, workdir, config, train_set, train_config, stop_on_non_finite=True,
-        after_epoch=_validation(model_config, data_config, train_config, devices),
-        progress=progress)
-    summary = {"workdir": str(workdir.path), "epochs": train_config.epochs,
-               "final_loss": records[-1]["loss"],
-               "wall_time_s": time.perf_counter() - start, "train_windows": len(train_set),
-               "config": config}
-    workdir.write_summary(summary)
+    with workdir.lock():
+        workdir.prepare(config)
+        if selection is not None:
+            selection.start(init_state)
+        state, records = train_epochs(
+            training, workdir, config, train_set, train_config, stop_on_non_finite=True,
+            after_epoch=after_epoch, progress=progress)
+        summary = {"workdir": str(workdir.path), "epochs": train_config.epochs,
+                   "final_loss": records[-1]["loss"],
+                   "wall_time_s": time.perf_counter() - start, "train_windows": len(train_set),
+                   "config": config}
+        if selection is not None:
+            summary["fine_tuning"] = selection.report(source, state, data_config)
+        workdir.write_summary(summary)
     return summary
 
 
+# Samples per validation window when a fine-tuning selects its epoch: the paper's 20 runs.
+SELECTION_SAMPLES = 20
+
+
+class _Selection:
+    """A fine-tuning's model: the epoch, the starting model's 0 included, with the lowest
+    validation AOE, kept in <workdir>/selected/ (what `load_model` then reads). Every epoch is
+    scored with the same draws (one key), so that epochs differ by their parameters only; the
+    test split is never looked at to choose."""
+
+    def __init__(self, model_config: ModelConfig, data_config: DataConfig,
+                 train_config: TrainConfig, workdir: WorkDir, config: dict,
+                 devices: Devices | None):
+        self.model_config, self.train_config, self.devices = model_config, train_config, devices
+        self.workdir, self.config = workdir, config
+        self.val_set = data.load_split(data_config, "val", model_config.grid)
+        self.predict = make_predict(model_config, num_samples=SELECTION_SAMPLES, with_graph=False)
+
+    def _score(self, params, window_set: data.WindowSet, key: jax.Array) -> dict:
+        return evaluate_params(params, key, window_set, self.model_config,
+                               num_samples=SELECTION_SAMPLES, with_kde=False,
+                               fully_detected_only=self.train_config.fully_detected_only,
+                               predict=self.predict, devices=self.devices)
+
+    def _consider(self, epoch: int, state: TrainState) -> dict:
+        result = self._score(state.params, self.val_set, validation_key(self.train_config.seed, 0))
+        scored = {"epoch": epoch, "val_aoe": result["aoe"], "val_foe": result["foe"]}
+        best = self.best()
+        if best is None or scored["val_aoe"] < best["val_aoe"]:
+            with contextlib.closing(self.workdir.selected_checkpointer()) as saved:
+                saved.discard()
+                saved.save(epoch, state, self.config, [], scored)
+            best = scored
+        return {"val_aoe": scored["val_aoe"], "val_foe": scored["val_foe"],
+                "selected_epoch": best["epoch"]}
+
+    def best(self) -> dict | None:
+        """{"epoch", "val_aoe", "val_foe"} of the model kept so far, or None."""
+        saved = self.workdir.selected_checkpointer(create=False)
+        if saved is None:
+            return None
+        with contextlib.closing(saved):
+            return saved.read_json("progress") if saved.latest_epoch is not None else None
+
+    def start(self, init_state: Callable[[], TrainState]) -> None:
+        """Score the starting model as epoch 0 (once; a resumed run has it)."""
+        if self.best() is None:
+            self._consider(0, init_state())
+
+    def after_epoch(self, epoch: int, state: TrainState) -> dict:
+        return self._consider(epoch, state)
+
+    def report(self, source: Run, state: TrainState, data_config: DataConfig) -> dict:
+        """The selection, and on the test windows (20 runs each, the same draws) the selected
+        model, the starting one and constant velocity."""
+        best = self.best()
+        with contextlib.closing(self.workdir.selected_checkpointer()) as saved:
+            selected = saved.restore(jax.eval_shape(lambda: state)).state
+        report = {"from": source.name, "selected_epoch": best["epoch"],
+                  "val_windows": len(self.val_set), "val_aoe": best["val_aoe"],
+                  "val_foe": best["val_foe"]}
+        test_set = data.load_split(data_config, "test", self.model_config.grid)
+        if not len(test_set):
+            return report
+        key = jax.random.key(0)
+        tuned = self._score(selected.params, test_set, key)
+        start = self._score(source.params, test_set, key)
+        report["test"] = {"windows": len(test_set),
+                          "tuned": {"aoe": tuned["aoe"], "foe": tuned["foe"]},
+                          "start": {"aoe": start["aoe"], "foe": start["foe"]},
+                          "constant_velocity": {"aoe": tuned["cv_aoe"], "foe": tuned["cv_foe"]}}
+        return report
+
+
 def fine_tuning_state(source: Run) -> TrainState:
-    """A fresh optimiser on the parameters of `source` (fine-tuning)."""
-    return TrainState(params=source.params, opt_state=make_optimizer().init(source.params),
-                      step=jnp.int32(0))
+    """A fresh optimiser on a copy of the parameters of `source` (fine-tuning; the training
+    step donates its state, and `source` is scored beside the result)."""
+    params = jax.tree.map(jnp.array, source.params)
+    return TrainState(params=params, opt_state=make_optimizer().init(params), step=jnp.int32(0))
 
 
 def check_same_layout(model_config: ModelConfig, source: Run) -> None:

@@ -7,6 +7,9 @@ anneals from its first epoch's end, so the last epoch trains at tau_end).
     paper       Adam 1e-3 x 0.3 every 50 epochs, tau 0.5 -> 0.03 linearly over the run
     compressed  the same shape fitted to the run's length E: x 0.3 every E/4 epochs, so that
                 `--epochs 200` gives exactly the paper schedule
+    finetune    the learning rate constant and tau held at tau_end: a trained model was
+                annealed to tau_end, and starting it again at 0.5 with Adam at 1e-3 (the paper
+                schedule) undoes what it learnt before it learns anything new
 """
 
 from __future__ import annotations
@@ -45,6 +48,9 @@ def _decay_every(train_config: TrainConfig) -> float:
 
 def make_schedule(train_config: TrainConfig) -> Schedule:
     """The schedule `train_config.schedule` names, over `train_config.epochs`."""
+    if train_config.schedule == "finetune":
+        return Schedule(learning_rate=optax.constant_schedule(train_config.learning_rate),
+                        temperature=optax.constant_schedule(train_config.tau_end))
     return Schedule(
         learning_rate=optax.exponential_decay(
             train_config.learning_rate, transition_steps=_decay_every(train_config),

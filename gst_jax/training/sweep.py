@@ -65,7 +65,6 @@ def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainC
     progress = progress or Progress()
     train_set = load_train_set(data_config, train_config, config.grid)
     sweep_config = run_config(config, data_config, train_config, members)
-    workdir.prepare(sweep_config)
     training = Training(
         init_state=lambda: initial_states(config, members),
         train_step=make_train_step(config, rotate=train_config.rotate, members=True,
@@ -73,8 +72,10 @@ def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainC
         hparams=lambda epoch: member_hparams(config, train_config, members, epoch),
         seeds=tuple(m.seed for m in members), member_names=tuple(m.name for m in members))
     start = time.perf_counter()
-    state, _ = train_epochs(training, workdir, sweep_config, train_set, train_config,
-                         stop_on_non_finite=False, progress=progress)
+    with workdir.lock():
+        workdir.prepare(sweep_config)
+        state, _ = train_epochs(training, workdir, sweep_config, train_set, train_config,
+                                stop_on_non_finite=False, progress=progress)
     train_time = time.perf_counter() - start
 
     test_set = data.load_split(data_config, "test", config.grid)
