@@ -16,7 +16,7 @@ from gst_jax.model.encoder import NodeEncoderLayer
 from gst_jax.model.heads import READOUT_SIZE, head
 from gst_jax.model.layers import DenseParams, torch_dense
 from gst_jax.model.recurrent import MaskedLSTMCell
-from gst_jax.model.selector import EdgeSelector, sample_edges
+from gst_jax.model.selector import EdgeSelector, nearest_candidates, sample_edges
 from gst_jax.model.temporal import TemporalConvReadout
 
 
@@ -40,12 +40,19 @@ class GST(nn.Module):
             self.tcn = TemporalConvReadout(config.obs_len, config.pred_len, READOUT_SIZE,
                                            dropout=config.dropout)
 
+    def candidates(self, edge_features: jax.Array, node_mask: jax.Array) -> jax.Array | None:
+        """Each target's candidate neighbours (..., N, K) at these steps, or None for the exact
+        model (`ModelConfig.candidates`, docs/MODEL.md 2.4)."""
+        count = self.config.candidates
+        return nearest_candidates(edge_features, node_mask, count) if count else None
+
     def select(self, node_features: jax.Array, edge_features: jax.Array, node_mask: jax.Array,
                controls: Controls, *, deterministic: bool) -> jax.Array:
         """The edge selector's probabilities (..., N, G, N+1); inputs as for `interact`."""
         return self.edge_selector(self.node_embedding(node_features), edge_features,
                                   self.edge_embedding(), adjacency(node_mask), controls,
-                                  deterministic=deterministic)
+                                  deterministic=deterministic,
+                                  candidates=self.candidates(edge_features, node_mask))
 
     def interact(self, node_features: jax.Array, edge_features: jax.Array, node_mask: jax.Array,
                  noise: jax.Array, controls: Controls, *, hard: bool, deterministic: bool,
@@ -56,9 +63,11 @@ class GST(nn.Module):
         noise (..., N, G, N+1); edge_probs, if given, are `select`'s output for these inputs
         (shared between samples that differ only in their noise). Returns encoded nodes
         (..., N, d), edge_probs and sampled_edges (..., N, G, N+1), and attention weights
-        (layers, ..., 8, N, N+1).
+        (layers, ..., 8, N, N+1). With candidates (`ModelConfig.candidates`) the selector and
+        the encoder's attention see each target's candidates and the ghost only.
         """
         edges = adjacency(node_mask)
+        candidates = self.candidates(edge_features, node_mask)
         node_embedding = self.node_embedding(node_features)
         # Full connection (n = 0): the observed adjacency itself, no ghost; as edges, in the
         # first head slot.
@@ -70,7 +79,8 @@ class GST(nn.Module):
             if edge_probs is None:
                 edge_probs = self.edge_selector(node_embedding, edge_features,
                                                 self.edge_embedding(), edges, controls,
-                                                deterministic=deterministic)
+                                                deterministic=deterministic,
+                                                candidates=candidates)
             sampled_edges, sampled_adjacency = sample_edges(edge_probs, noise, controls,
                                                             hard=hard)
             full_connection = controls.num_edge_heads == 0
@@ -87,7 +97,7 @@ class GST(nn.Module):
         attention = []
         for layer in self.node_encoder_layers:
             x, weights = layer(x, node_mask, sampled_adjacency, with_ghost_key,
-                               deterministic=deterministic)
+                               deterministic=deterministic, candidates=candidates)
             attention.append(weights)
         return x, edge_probs, sampled_edges, jnp.stack(attention)
 

@@ -14,6 +14,14 @@ plus an affine combination of 5 per-target vectors, and the attention scores and
 value mixture are contracted through those parts (plus the MLP's first, linear layer,
 applied to the value parts before mixing): the same maths, with per-edge work of width 5
 instead of 3W = 384.
+
+With a candidate neighbourhood (`ModelConfig.candidates` = k, docs/MODEL.md 2.4) each target
+attends over its own K = min(k, N) candidates and the ghost only: the neighbour parts, edge
+coefficients and validity are gathered per target, (..., N, K+1, ...), the same contractions
+run with a target axis on them, and the probabilities are scattered back to all N + 1
+neighbours, zero outside the candidates, so that sampling and everything after it are those
+of the exact model. Per step the attention is then (N, G, K+1, K+1) instead of
+(N, G, N+1, N+1): N K^2 work instead of N^3.
 """
 
 from __future__ import annotations
@@ -27,6 +35,46 @@ from gst_jax.graph import float_mask_attention_weights, masked_categorical, EPS
 from gst_jax.gumbel import gumbel_softmax
 from gst_jax.model.controls import Controls
 from gst_jax.model.layers import Dropout, LayerNormParams, layer_norm, torch_uniform
+
+
+def nearest_candidates(edge_features: jax.Array, node_mask: jax.Array, count: int) -> jax.Array:
+    """Each target's candidate neighbourhood (docs/MODEL.md 2.4): (..., N, K) the slots of its
+    K = min(count, N) nearest valid people, nearest first and itself first of all (its self
+    edge is in the adjacency); equal distances go to the lower slot. A target with fewer than
+    K valid people gets invalid slots too, which the adjacency masks.
+
+    edge_features (..., N, N, 2) A indexed [j, i]; node_mask (..., N). The choice is not
+    differentiable and takes no gradient.
+    """
+    offsets = jax.lax.stop_gradient(jnp.swapaxes(edge_features, -2, -3))     # [i, j]
+    num_nodes = node_mask.shape[-1]
+    valid = (node_mask[..., :, None] * node_mask[..., None, :]) > 0
+    distance = jnp.where(valid, offsets[..., 0] ** 2 + offsets[..., 1] ** 2, jnp.inf)
+    distance = jnp.where(jnp.eye(num_nodes, dtype=bool), -1.0, distance)
+    return jax.lax.top_k(-distance, min(count, num_nodes))[1]
+
+
+def with_ghost(candidates: jax.Array, num_nodes: int) -> jax.Array:
+    """(..., K) candidate slots -> (..., K+1) with the ghost's, N, last."""
+    ghost = jnp.full(candidates.shape[:-1] + (1,), num_nodes, candidates.dtype)
+    return jnp.concatenate([candidates, ghost], axis=-1)
+
+
+def gather_neighbours(per_neighbour: jax.Array, neighbours: jax.Array) -> jax.Array:
+    """Each target's own rows: per_neighbour (..., L, F), neighbours (..., N, K) -> (..., N, K, F)."""
+    return jnp.take_along_axis(per_neighbour[..., None, :, :], neighbours[..., None], axis=-2,
+                               mode="clip")
+
+
+def scatter_neighbours(per_candidate: jax.Array, candidates: jax.Array,
+                       num_nodes: int) -> jax.Array:
+    """(..., K+1) values of each target's candidates then the ghost -> (..., N+1) over every
+    neighbour (ghost last), zero outside the candidates. candidates (..., K) broadcasts
+    against per_candidate's leading axes."""
+    slots = with_ghost(jnp.broadcast_to(candidates, per_candidate.shape[:-1] + candidates.shape[-1:]),
+                       num_nodes)
+    every = jnp.zeros(per_candidate.shape[:-1] + (num_nodes + 1,), per_candidate.dtype)
+    return jnp.put_along_axis(every, slots, per_candidate, axis=-1, inplace=False)
 
 
 def group_to_head(num_groups: int, num_edge_heads: jax.Array) -> jax.Array:
@@ -71,13 +119,14 @@ class EdgeSelector(nn.Module):
         self.mlp_out_bias = self.param("mlp_out_bias", torch_uniform(head_dim), ())
         self.dropout = Dropout(config.dropout, ghost_axis=-2)      # (..., N, L, W)
 
-    def edge_coefficients(self, edge_features: jax.Array, edge_embedding: tuple[jax.Array, jax.Array],
-                          adjacency: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def edge_coefficients(self, a: jax.Array, valid: jax.Array,
+                          edge_embedding: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
         """a_ij LayerNorm(phi_e(A[j, i])) W_c per target i and neighbour j, as c_ij @ basis.
 
-        edge_features (..., N, N, 2) indexed [j, i]; edge_embedding: phi_e's (kernel (2, d_e),
-        bias (d_e,)); adjacency (..., N, N). Returns the coefficients c (..., N, N+1, 4) indexed
-        [i, j] (ghost column zero) and the basis (4, 3W).
+        a (..., N, M, 2): A[j, i] indexed [i, j] over M neighbours (all N, or each target's
+        candidates); valid (..., N, M): a_ij; edge_embedding: phi_e's (kernel (2, d_e), bias
+        (d_e,)). Returns the coefficients c (..., N, M+1, 4) indexed [i, j] (ghost column zero)
+        and the basis (4, 3W).
         """
         kernel, bias = edge_embedding
         scale, shift = self.norm_edge()
@@ -88,10 +137,8 @@ class EdgeSelector(nn.Module):
         gram = centred_kernel @ centred_kernel.T / kernel.shape[-1]              # (2, 2)
         cross = centred_kernel @ centred_bias / kernel.shape[-1]                 # (2,)
         offset = centred_bias @ centred_bias / kernel.shape[-1]
-        a = jnp.swapaxes(edge_features, -2, -3)                                  # [i, j]
         variance = (jnp.einsum("...p,pq,...q->...", a, gram, a) + 2 * a @ cross + offset)
-        valid = jnp.swapaxes(adjacency, -1, -2)
-        scaled = jax.lax.rsqrt(jnp.maximum(variance, 0.0) + 1e-5) * valid        # (..., N, N)
+        scaled = jax.lax.rsqrt(jnp.maximum(variance, 0.0) + 1e-5) * valid        # (..., N, M)
         coefficients = jnp.stack([a[..., 0] * scaled, a[..., 1] * scaled, scaled, valid], -1)
         coefficients = jnp.concatenate([coefficients, jnp.zeros_like(coefficients[..., :1, :])],
                                        axis=-2)
@@ -103,13 +150,15 @@ class EdgeSelector(nn.Module):
 
     def __call__(self, node_embedding: jax.Array, edge_features: jax.Array,
                  edge_embedding: tuple[jax.Array, jax.Array], adjacency: jax.Array,
-                 controls: Controls, *, deterministic: bool) -> jax.Array:
+                 controls: Controls, *, deterministic: bool,
+                 candidates: jax.Array | None = None) -> jax.Array:
         """Edge probabilities of one or more time steps (sample them with `sample_edges`).
 
         node_embedding: (..., N, d) phi_v(v); edge_features: (..., N, N, 2) A indexed [j, i];
-        edge_embedding: phi_e's (kernel, bias); adjacency: (..., N, N) a_ij.
+        edge_embedding: phi_e's (kernel, bias); adjacency: (..., N, N) a_ij; candidates:
+        (..., N, K) each target's candidate neighbours (`nearest_candidates`), None = all.
         Returns edge_probs (..., N, G, N+1): target, head slot, neighbour (ghost last);
-        inactive head slots and invalid neighbours zero.
+        inactive head slots, invalid neighbours and non-candidates zero.
         """
         config = self.config
         num_groups = config.head_slots
@@ -123,8 +172,13 @@ class EdgeSelector(nn.Module):
         # The ghost neighbour: zero node and edge features, valid for every target.
         x_nb = jnp.concatenate([x, jnp.zeros_like(x[..., :1, :])], axis=-2)     # (..., L, d)
         ghost_column = jnp.broadcast_to(controls.ghost.astype(x.dtype), node_valid.shape)
-        valid_edges = jnp.concatenate(                                          # a'_ij (..., N, L)
-            [jnp.swapaxes(adjacency, -1, -2), ghost_column[..., None]], axis=-1)
+        a, valid = jnp.swapaxes(edge_features, -2, -3), jnp.swapaxes(adjacency, -1, -2)  # [i, j]
+        if candidates is not None:
+            # Only the candidates are neighbours: every per-edge array is gathered per target,
+            # and the neighbour axis L below is each target's K candidates and the ghost.
+            a = jnp.take_along_axis(a, candidates[..., None], axis=-2, mode="clip")  # (..., N, K, 2)
+            valid = jnp.take_along_axis(valid, candidates, axis=-1, mode="clip")     # (..., N, K)
+        valid_edges = jnp.concatenate([valid, ghost_column[..., None]], axis=-1)  # a'_ij (..., N, L)
 
         # [x_j | x_i | e_ji] W = x_j W_a + (x_i W_b + bias) + c_ij @ basis: a per-neighbour
         # part P_j, and per target i an affine combination of R = 5 vectors B_i with the edge
@@ -133,8 +187,7 @@ class EdgeSelector(nn.Module):
         kernel = self.in_proj_kernel
         from_neighbour = x_nb @ kernel[:d]                                       # (..., L, 3W)
         from_target = x @ kernel[d:2 * d] + self.in_proj_bias                    # (..., N, 3W)
-        coefficients, edge_basis = self.edge_coefficients(edge_features, edge_embedding,
-                                                          adjacency)
+        coefficients, edge_basis = self.edge_coefficients(a, valid, edge_embedding)
         c = jnp.concatenate([jnp.ones_like(coefficients[..., :1]), coefficients],
                             axis=-1)                                             # (..., N, L, R)
         # The MLP's first layer is linear in the attention output, so it is applied to the
@@ -147,39 +200,40 @@ class EdgeSelector(nn.Module):
         node_part = through_mlp(from_neighbour)                                  # (..., L, 3W)
         target_part = through_mlp(from_target)                                   # (..., N, 3W)
         edge_basis = through_mlp(edge_basis)                                     # (R - 1, 3W)
-        basis = jnp.concatenate([target_part[..., None, :], jnp.broadcast_to(
-            edge_basis, target_part.shape[:-1] + edge_basis.shape)], axis=-2)  # (..., N, R, 3W)
 
         def grouped(t):  # (..., 3W) -> q, k, v parts, each (..., G, W/G)
             t = t.reshape(t.shape[:-1] + (3, num_groups, width // num_groups))
             return t[..., 0, :, :], t[..., 1, :, :], t[..., 2, :, :]
 
-        pq, pk, pv = grouped(node_part)                                          # (..., L, G, w)
-        bq, bk, _ = grouped(basis)                                               # (..., N, R, G, w)
-        # q_il . k_im = P_l.P_m + c~_im.(B_i.P_l) + c~_il.(B_i.P_m) + c~_il (B_i.B_i) c~_im
-        pq_bk = jnp.einsum("...lgc,...isgc->...igls", pq, bk)
-        bq_pk = jnp.einsum("...irgc,...mgc->...igrm", bq, pk)
-        bq_bk = jnp.einsum("...irgc,...isgc->...igrs", bq, bk)
-        by_target = pq_bk + jnp.einsum("...ilr,...igrs->...igls", c, bq_bk)
-        group_scores = (jnp.einsum("...lgc,...mgc->...glm", pq, pk)[..., None, :, :, :]
-                        + jnp.einsum("...igls,...ims->...iglm", by_target, c)
-                        + jnp.einsum("...ilr,...igrm->...iglm", c, bq_pk))  # (..., N, G, L, L)
-
         heads = group_to_head(num_groups, n)                                     # (G, G)
-        scores = jnp.einsum("...glm,gh->...hlm", group_scores, heads) / jnp.sqrt(
-            head_dim.astype(x.dtype))
-        edge_pair_mask = valid_edges[..., None, :, None] * valid_edges[..., None, None, :]
-        weights = float_mask_attention_weights(scores, edge_pair_mask)           # (..., N, H, L, L)
-        group_weights = jnp.einsum("...hlm,gh->...glm", weights, heads)
-        mixed_coefficients = jnp.einsum("...glm,...ms->...gls", group_weights, c)
-        # The values' basis B_i is the target's own part and R - 1 parts shared by every
-        # target (and sample): contracted with the shared parts in one product for all edges.
-        own_values = grouped(target_part)[2]                                     # (..., N, G, w)
-        shared_values = grouped(edge_basis)[2]                                   # (R - 1, G, w)
-        own_weights = jnp.swapaxes(mixed_coefficients[..., 0], -1, -2)[..., None]  # (..., N, L, G, 1)
-        hidden = (jnp.einsum("...iglm,...mgc->...ilgc", group_weights, pv)
-                  + own_weights * own_values[..., None, :, :]
-                  + jnp.einsum("...gls,sgc->...lgc", mixed_coefficients[..., 1:], shared_values))
+        scale = jnp.sqrt(head_dim.astype(x.dtype))
+        if candidates is not None:
+            hidden = _candidate_hidden(grouped(node_part), grouped(target_part),
+                                       grouped(edge_basis), c, valid_edges, heads, scale,
+                                       with_ghost(candidates, x.shape[-2]))
+        else:
+            pq, pk, pv = grouped(node_part)                                      # (..., L, G, w)
+            basis = jnp.concatenate([target_part[..., None, :], jnp.broadcast_to(
+                edge_basis, target_part.shape[:-1] + edge_basis.shape)], axis=-2)  # (..., N, R, 3W)
+            bq, bk, _ = grouped(basis)                                           # (..., N, R, G, w)
+            # q_il . k_im = P_l.P_m + c~_im.(B_i.P_l) + c~_il.(B_i.P_m) + c~_il (B_i.B_i) c~_im
+            pq_bk = jnp.einsum("...lgc,...isgc->...igls", pq, bk)
+            bq_pk = jnp.einsum("...irgc,...mgc->...igrm", bq, pk)
+            bq_bk = jnp.einsum("...irgc,...isgc->...igrs", bq, bk)
+            by_target = pq_bk + jnp.einsum("...ilr,...igrs->...igls", c, bq_bk)
+            group_scores = (jnp.einsum("...lgc,...mgc->...glm", pq, pk)[..., None, :, :, :]
+                            + jnp.einsum("...igls,...ims->...iglm", by_target, c)
+                            + jnp.einsum("...ilr,...igrm->...iglm", c, bq_pk))  # (..., N, G, L, L)
+            group_weights, mixed_coefficients = _attend(group_scores, c, valid_edges, heads,
+                                                        scale)
+            # The values' basis B_i is the target's own part and R - 1 parts shared by every
+            # target (and sample): contracted with the shared parts in one product for all edges.
+            own_values = grouped(target_part)[2]                                 # (..., N, G, w)
+            shared_values = grouped(edge_basis)[2]                               # (R - 1, G, w)
+            own_weights = jnp.swapaxes(mixed_coefficients[..., 0], -1, -2)[..., None]  # (..., N, L, G, 1)
+            hidden = (jnp.einsum("...iglm,...mgc->...ilgc", group_weights, pv)
+                      + own_weights * own_values[..., None, :, :]
+                      + jnp.einsum("...gls,sgc->...lgc", mixed_coefficients[..., 1:], shared_values))
         hidden = hidden.reshape(hidden.shape[:-2] + (width,))                    # (..., N, L, W)
 
         within = jnp.arange(width) % head_dim
@@ -192,8 +246,81 @@ class EdgeSelector(nn.Module):
         contributions = hidden @ output_by_group                                 # (..., N, L, G)
         logits = jnp.einsum("...lg,gh->...hl", contributions, heads) + self.mlp_out_bias
 
-        return masked_categorical(logits, valid_edges[..., None, :]) * _active_heads(controls,
-                                                                                    num_groups)
+        edge_probs = masked_categorical(logits, valid_edges[..., None, :]) * _active_heads(
+            controls, num_groups)
+        if candidates is None:
+            return edge_probs
+        return scatter_neighbours(edge_probs, candidates[..., None, :], x.shape[-2])
+
+
+def _attend(group_scores: jax.Array, c: jax.Array, valid_edges: jax.Array, heads: jax.Array,
+            scale: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The attention among each target's neighbours (docs/MODEL.md 2.1 steps 4-5), per group:
+    group_scores (..., N, G, L, L), c (..., N, L, R), valid_edges (..., N, L). Returns the
+    weights (..., N, G, L, L) and the coefficients they mix, sum_m w_ilm c~_im (..., N, G, L, R)."""
+    scores = jnp.einsum("...glm,gh->...hlm", group_scores, heads) / scale
+    edge_pair_mask = valid_edges[..., None, :, None] * valid_edges[..., None, None, :]
+    weights = float_mask_attention_weights(scores, edge_pair_mask)               # (..., N, H, L, L)
+    group_weights = jnp.einsum("...hlm,gh->...glm", weights, heads)
+    return group_weights, jnp.einsum("...glm,...ms->...gls", group_weights, c)
+
+
+def _candidate_hidden(node, target, shared, c: jax.Array, valid_edges: jax.Array,
+                      heads: jax.Array, scale: jax.Array, neighbours: jax.Array) -> jax.Array:
+    """`EdgeSelector`'s attention and value mixture over each target's candidates: the exact
+    model's maths with l, m over the K+1 neighbours of `neighbours` (..., N, K+1) (candidates,
+    then the ghost) and c, valid_edges gathered likewise. node (P_q, P_k, P_v) (..., N+1, G, w)
+    of every neighbour, target (T_q, T_k, T_v) (..., N, G, w) and shared (E_q, E_k, E_v)
+    (R-1, G, w) are the parts of q, k, v (B_i = [T_i; E]). Returns the MLP's hidden layer
+    before its bias, (..., N, K+1, G, w).
+
+    Products with the neighbours' q/k parts are formed densely over all N + 1 of them (N^2 w
+    multiply-adds in a few matrix products) and gathered after; only the value parts are
+    gathered per edge. The small sums over R run as elementwise products. Both keep every
+    per-target matrix product in its natural layout: gathering the q/k parts per edge and
+    contracting everything with einsum took several times longer on a CPU, in transposes.
+    """
+    (pq, pk, pv), (tq, tk, tv), (eq, ek, ev) = node, target, shared
+    num_neighbours = pq.shape[-3]
+
+    def per_target(rows):  # (..., N+1, G, X) -> (..., N, G, K+1, X): each target's candidates
+        flat = gather_neighbours(rows.reshape(rows.shape[:-2] + (-1,)), neighbours)
+        return jnp.swapaxes(flat.reshape(flat.shape[:-1] + rows.shape[-2:]), -3, -2)
+
+    def by_neighbour(per_target_row):  # (..., N, G, N+1) -> (..., N, G, K+1)
+        return jnp.take_along_axis(per_target_row, neighbours[..., None, :], axis=-1, mode="clip")
+
+    # q_il . k_im = P_l.P_m + c~_im.(B_i.P_l) + c~_il.(B_i.P_m) + c~_il (B_i.B_i) c~_im, with
+    # the first three products dense over all neighbours, then gathered.
+    gram = jnp.einsum("...lgc,...mgc->...glm", pq, pk)                          # (..., G, N+1, N+1)
+    pairs = neighbours[..., :, None] * num_neighbours + neighbours[..., None, :]
+    node_scores = jnp.take_along_axis(
+        gram.reshape(gram.shape[:-2] + (-1,))[..., None, :, :],
+        pairs.reshape(pairs.shape[:-2] + (1, -1)), axis=-1, mode="clip").reshape(pairs.shape[:-2] + (
+            gram.shape[-3],) + pairs.shape[-2:])                                 # (..., N, G, L, L)
+    pq_bk = jnp.concatenate([
+        by_neighbour(jnp.einsum("...lgc,...igc->...igl", pq, tk))[..., None],
+        per_target(jnp.einsum("...lgc,sgc->...lgs", pq, ek))], axis=-1)        # (..., N, G, L, R)
+    bq_pk = jnp.concatenate([
+        by_neighbour(jnp.einsum("...igc,...mgc->...igm", tq, pk))[..., None, :],
+        jnp.swapaxes(per_target(jnp.einsum("rgc,...mgc->...mgr", eq, pk)), -1, -2)],
+        axis=-2)                                                                 # (..., N, G, R, L)
+    own = jnp.concatenate([jnp.einsum("...igc,...igc->...ig", tq, tk)[..., None],
+                           jnp.einsum("...igc,sgc->...igs", tq, ek)], axis=-1)  # (..., N, G, R)
+    others = jnp.concatenate([
+        jnp.einsum("rgc,...igc->...igr", eq, tk)[..., None],
+        jnp.broadcast_to(jnp.einsum("rgc,sgc->grs", eq, ek), own.shape[:-1] + eq.shape[:1]
+                         + ek.shape[:1])], axis=-1)                              # (..., N, G, R-1, R)
+    bq_bk = jnp.concatenate([own[..., None, :], others], axis=-2)               # (..., N, G, R, R)
+    c = c[..., None, :, :]                                                       # (..., N, 1, L, R)
+    by_target = pq_bk + jnp.einsum("...glr,...grs->...gls", c, bq_bk)
+    group_scores = (node_scores + jnp.einsum("...gls,...gms->...glm", by_target, c)
+                    + jnp.einsum("...glr,...grm->...glm", c, bq_pk))
+    group_weights, mixed = _attend(group_scores, c[..., 0, :, :], valid_edges, heads, scale)
+    hidden = (jnp.einsum("...glm,...gmc->...glc", group_weights, per_target(pv))
+              + sum(mixed[..., s, None] * (tv[..., None, :] if s == 0 else ev[s - 1, :, None, :])
+                    for s in range(mixed.shape[-1])))                           # (..., N, G, L, w)
+    return jnp.swapaxes(hidden, -3, -2)
 
 
 def _active_heads(controls: Controls, num_groups: int) -> jax.Array:
