@@ -1,8 +1,9 @@
 """Figures (matplotlib, Agg backend) from results already computed; nothing here is jitted.
 
 Fig. 3 (a prediction with its sampled graphs), one agent's attention over time, training
-curves, and a sweep's errors against n (the paper's Fig. 4 for one scene). The figures of
-the tables and the cross-dataset study are experiments/_figures.py's.
+curves, a sweep's errors against n (the paper's Fig. 4 for one scene), and conformal regions
+over a scene with their coverage. The figures of the tables and the cross-dataset study are
+experiments/_figures.py's.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from pathlib import Path
 from typing import Sequence
 
 import matplotlib
+import numpy as np
 
 # Figures are files, never windows: the one place matplotlib is set up, for every figure of
 # the package (gst_jax.simulate.figures imports `plt` and `save` from here).
@@ -165,5 +167,55 @@ def training_curves(records: Sequence[dict], path: Path, title: str = "") -> Pat
         axes[0, 1].legend(fontsize=7)
         axes[0, 1].grid(alpha=0.3)
     fig.suptitle(title, fontsize=8)
+    fig.tight_layout()
+    return save(fig, path)
+
+
+def conformal_regions(history, futures, radii, truth, coverage, radius, alpha: float,
+                      step_s: float, path: Path, title: str = "", most_tracks: int = 6) -> Path:
+    """One frame's predictions with their conformal discs (left: the `most_tracks` tracks
+    nearest the frame's centre, discs every third step) and the long-run coverage and mean
+    radius per horizon step (right).
+
+    history (L, T, 2) NaN where not detected; futures (L, P, 2); radii (L, P) metres; truth
+    (L, P, 2) NaN where not observed; coverage, radius (P,).
+    """
+    fig, (scene_ax, coverage_ax) = plt.subplots(1, 2, figsize=(11, 4.6),
+                                                gridspec_kw=dict(width_ratios=[1.3, 1]))
+    now = history[:, -1]
+    shown = np.argsort(np.linalg.norm(now - np.median(now, axis=0), axis=-1))[:most_tracks]
+    horizon = futures.shape[1]
+    steps = list(range(2, horizon, 3)) or [horizon - 1]
+    colors = plt.get_cmap("viridis")(np.linspace(0.15, 0.85, len(steps)))
+    for track in shown:
+        scene_ax.plot(*history[track].T, "-", color="tab:blue", lw=1.5)
+        scene_ax.plot(*truth[track].T, "-", color="tab:green", lw=1.5)
+        scene_ax.plot(*futures[track].T, ".-", color="tab:red", lw=1.0, ms=3)
+        for color, k in zip(colors, steps):
+            if np.isfinite(radii[track, k]):
+                scene_ax.add_patch(plt.Circle(futures[track, k], radii[track, k], fill=False,
+                                              color=color, lw=1.0, alpha=0.8))
+    handles = [plt.Line2D([], [], color=c, label=label) for c, label in (
+        ("tab:blue", "observed"), ("tab:green", "what happened"), ("tab:red", "predicted"))]
+    handles += [plt.Line2D([], [], color=c, marker="o", ls="", mfc="none",
+                           label=f"disc at {(k + 1) * step_s:.1f} s") for c, k in zip(colors, steps)]
+    scene_ax.legend(handles=handles, fontsize=7, loc="best")
+    scene_ax.set_aspect("equal", adjustable="datalim")
+    scene_ax.autoscale_view()
+    scene_ax.set_xlabel("x (m)")
+    scene_ax.set_ylabel("y (m)")
+    scene_ax.set_title(title, fontsize=8)
+    seconds = step_s * np.arange(1, len(coverage) + 1)
+    coverage_ax.plot(seconds, coverage, "o-", color="tab:purple", label="coverage")
+    coverage_ax.axhline(1 - alpha, color="gray", ls="--", lw=1, label=f"target {1 - alpha:.2f}")
+    coverage_ax.set_ylim(min(0.5, float(np.min(coverage)) - 0.05), 1.0)
+    coverage_ax.set_xlabel("horizon (s)")
+    coverage_ax.set_ylabel("long-run coverage")
+    radius_ax = coverage_ax.twinx()
+    radius_ax.plot(seconds, radius, "s:", color="tab:orange", label="mean radius")
+    radius_ax.set_ylabel("mean radius (m)")
+    lines = coverage_ax.get_legend_handles_labels(), radius_ax.get_legend_handles_labels()
+    coverage_ax.legend(lines[0][0] + lines[1][0], lines[0][1] + lines[1][1], fontsize=7,
+                       loc="lower left")
     fig.tight_layout()
     return save(fig, path)

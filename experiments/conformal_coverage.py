@@ -1,0 +1,133 @@
+"""Coverage of conformal regions around streamed predictions, scene by scene and under shift:
+
+    python experiments/conformal_coverage.py                # runs/conformal_coverage/
+    python experiments/conformal_coverage.py --publish      # results/conformal_coverage.md
+
+Each case plays a stream (`gst_jax.coverage.play`, as `python -m gst_jax.conformal` does) and
+measures split conformal (calibrated on the first 30 % of the frames), ACI and DtACI (pooled
+per horizon step) at alpha = 0.1 on the frames after those 30 %, the same predictions (mean
+mode) for every method:
+
+- each ETH/UCY scene's test split (the paper protocol's last 20 % of its files) through the
+  scene's shipped model (`pretrained:<scene>_d`);
+- shift between scenes: HOTEL's model on ETH's test split;
+- shift in time: a simulated crowd (`gst_jax.simulate.crowds`, episode 900, 150 s at 0.25 s)
+  played at every step for its first 50 s and at every second step after, so that everyone
+  walks twice as fast from the middle of the stream's 400 frames on, through
+  `pretrained:crowdnav_sim` (trained on such crowds at their own speed). Split conformal is
+  calibrated before the change.
+
+Every (case, method) is recorded in <out>/runs/conformal-<case>-<method>.json as it finishes, and
+skipped when its record exists, so an interrupted run continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import add_results_flags, results_folder
+
+from gst_jax.config import DataConfig
+from gst_jax.coverage import METHODS, FrameRows, play, scene_streams
+from gst_jax.progress import Progress, hms
+from gst_jax.runs import load_model
+from gst_jax.simulate.crowds import CrowdConfig, simulate_crowd
+
+SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
+ALPHA, CALIBRATION = 0.1, 0.3
+# Within this of 1 - alpha at every horizon step: the issue's criterion without shift, and
+# with shift.
+TOLERANCE, SHIFT_TOLERANCE = 0.01, 0.015
+
+
+def speed_doubling_crowd(episode: int = 900, duration_s: float = 150.0) -> list[FrameRows]:
+    """A simulated crowd's frames: every step of its first third, every second step after
+    (as many frames), so that the speed doubles halfway through the stream."""
+    positions, detected = simulate_crowd(CrowdConfig(duration_s=duration_s), seed=episode)
+    third = len(positions) // 3
+    steps = list(range(third)) + list(range(third, len(positions), 2))
+    return [(t, np.flatnonzero(detected[t]), positions[t][detected[t]]) for t in steps]
+
+
+def cases() -> dict[str, tuple[str, callable, str]]:
+    """name: (model, its streams (a function: built when the case runs), what it shows)."""
+    def scene(name):
+        return lambda run: scene_streams(DataConfig(scene=name), "test", run.model_config.grid)
+    table = {s: (f"pretrained:{s}_d", scene(s), "no shift") for s in SCENES}
+    table["hotel-on-eth"] = ("pretrained:hotel_d", scene("eth"), "shift: another scene")
+    table["speed-doubles"] = ("pretrained:crowdnav_sim", lambda run: [speed_doubling_crowd()],
+                              "shift: speed x2 halfway")
+    return table
+
+
+def summary(name: str, shows: str, results: dict[str, dict]) -> dict:
+    """One row: per method the worst horizon step's coverage gap and the mean radius."""
+    tolerance = TOLERANCE if shows == "no shift" else SHIFT_TOLERANCE
+    row = {"case": name, "shows": shows, "frames": results["split"]["frames"],
+           "scores": sum(results["split"]["scores"])}
+    for method, result in results.items():
+        coverage = np.asarray(result["coverage"])
+        row[method] = {"coverage_min": float(coverage.min()), "coverage_max": float(coverage.max()),
+                       "within": bool(np.all(np.abs(coverage - (1 - ALPHA)) <= tolerance)),
+                       "mean_radius": float(np.mean(result["radius"]))}
+    row["dtaci_radius_over_split"] = row["dtaci"]["mean_radius"] / row["split"]["mean_radius"]
+    return row
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["# Conformal regions around streamed predictions", "",
+             f"alpha = {ALPHA}; pooled per horizon step; mean-mode predictions; scored on the "
+             f"frames after the first {CALIBRATION:.0%} (split conformal's calibration). Coverage: "
+             "lowest-highest over the horizon steps; within: every step within "
+             f"{TOLERANCE} of 0.9 ({SHIFT_TOLERANCE} under shift). Made by "
+             "`python experiments/conformal_coverage.py --publish`.", "",
+             "| case | frames | scores | " + " | ".join(
+                 f"{m} coverage | {m} within | {m} radius (m)" for m in METHODS)
+             + " | DtACI / split radius |",
+             "|---|---|---|" + "---|---|---|" * len(METHODS) + "---|"]
+    for row in rows:
+        cells = [f"{row['case']} ({row['shows']})", str(row["frames"]), str(row["scores"])]
+        for method in METHODS:
+            m = row[method]
+            cells += [f"{m['coverage_min']:.3f}-{m['coverage_max']:.3f}",
+                      "yes" if m["within"] else "no", f"{m['mean_radius']:.2f}"]
+        cells.append(f"{row['dtaci_radius_over_split']:.2f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", nargs="*", default=list(cases()), choices=list(cases()),
+                        help="which cases (default: all)")
+    add_results_flags(parser, "conformal_coverage", "conformal_coverage.md/.json and the "
+                      "records runs/*.json", runs=False)
+    args = parser.parse_args(argv)
+    out = results_folder(args)
+    (out / "runs").mkdir(parents=True, exist_ok=True)
+    rows, progress = [], Progress()
+    for name in args.cases:
+        model, streams_of, shows = cases()[name]
+        run, results = load_model(model), {}
+        for method in METHODS:
+            record = out / "runs" / f"conformal-{name}-{method}.json"
+            if not record.exists():
+                started = time.perf_counter()
+                result, _ = play(run, streams_of(run), method=method, alpha=ALPHA,
+                                 calibration=CALIBRATION, progress=progress)
+                result.update(case=name, model=model, seconds=time.perf_counter() - started)
+                record.write_text(json.dumps(result, indent=1) + "\n")
+                progress.line(f"{name} {method}: {hms(result['seconds'])}")
+            results[method] = json.loads(record.read_text())
+        rows.append(summary(name, shows, results))
+    (out / "conformal_coverage.json").write_text(json.dumps(rows, indent=1) + "\n")
+    (out / "conformal_coverage.md").write_text(markdown(rows))
+    print(json.dumps(rows, indent=1) if args.json else markdown(rows))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,215 @@
+"""The streaming predictor: a recorded scene replayed frame by frame predicts what the
+window-based `predict` does on the same windows; slots are reused, capacity grows, a track that
+appears is partially detected, bad frames are refused in one line; the pure step vmaps over
+robots."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gst_jax import data, stream
+from gst_jax.data.readers import read_tracks, to_model_rate
+from gst_jax.data.windows import cut_windows, kept
+from gst_jax.errors import DataError
+from gst_jax.predict import make_predict
+from gst_jax.runs import load_model
+
+SIM = Path(__file__).parents[1] / "data" / "samples" / "sim_crowds" / "episode_040.txt"
+
+
+def frames_of(tracks) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(frame id, ids, positions) of every step of a file's grid, empty steps included."""
+    steps = range(tracks.frames.min(), tracks.frames.max() + 1, tracks.frame_step)
+    return [(f, tracks.pedestrians[tracks.frames == f], tracks.xy[tracks.frames == f])
+            for f in steps]
+
+
+def replay(run, tracks, **options) -> dict[int, stream.StreamOutput]:
+    """The stream's output after each frame, by frame id."""
+    player = stream.Stream(run, **options)
+    return {f: player.step(ids, xy) for f, ids, xy in frames_of(tracks)}
+
+
+def window_prediction(run, window, **options) -> dict[int, np.ndarray]:
+    """{pedestrian id: (P, 2) mean future} of one window, as `evaluate` predicts it (the
+    window's frame of coordinates, its origin added back)."""
+    batch = next(data.evaluation_batches(data.WindowSet((window,))))
+    prediction = make_predict(run.model_config, 1, with_graph=False, mean=True, **options)(
+        run.params, jax.random.key(0), batch)
+    positions = np.asarray(prediction.positions)[0, 0]                         # (P, N, 2)
+    return {int(window.pedestrian_ids[k]): positions[:, k] + window.origin
+            for k in range(window.num_predicted)}
+
+
+def test_a_replayed_scene_predicts_what_its_windows_predict():
+    """CrowdNav++'s configuration trained here (no edge selector, GST (P) in mean mode): a
+    deterministic model, so each person's future must match whatever slot holds them."""
+    run = load_model("pretrained:crowdnav_sim")
+    grid = run.model_config.grid
+    tracks = to_model_rate(read_tracks(SIM), 4.0, grid.hz)
+    outputs = replay(run, tracks)
+    windows = kept(cut_windows(tracks, grid.seq_len, grid.obs_len))
+    compared = 0
+    for window in windows[::7]:
+        last_observed = window.start_frame + (grid.obs_len - 1) * window.frame_step
+        out = outputs[last_observed]
+        streamed = dict(zip(out.ids.tolist(), out.futures))
+        expected = window_prediction(run, window)
+        assert sorted(streamed) == sorted(expected)
+        for pedestrian, future in expected.items():
+            # float32 through other paddings and slot orders: rounding of metres-sized sums.
+            np.testing.assert_allclose(streamed[pedestrian], future, rtol=0, atol=2e-5)
+            compared += 1
+    assert compared > 50
+
+
+def test_the_paper_model_streams_the_windows_observations_exactly():
+    """The paper's model samples its graph, with draws keyed by slot, so the stream and a
+    window predict alike once laid out alike: the stream's history is exactly the window's
+    observation, and it predicts the same people."""
+    run = load_model("pretrained:eth_d")
+    grid = run.model_config.grid
+    [path] = data.protocols.scene_files(data.default_data_dir(), "eth")
+    tracks = read_tracks(path)
+    windows = {w.start_frame: w for w in kept(cut_windows(tracks, grid.seq_len, grid.obs_len))}
+    player = stream.Stream(run, capacity=16)
+    checked = 0
+    for f, ids, xy in frames_of(tracks)[:400]:
+        out = player.step(ids, xy)
+        window = windows.get(f - (grid.obs_len - 1) * tracks.frame_step)
+        if window is None or checked >= 6:
+            continue
+        state = player.state
+        slots = {int(i): k for k, i in enumerate(np.asarray(state.track_ids)) if i >= 0}
+        observed = window.position_mask[:grid.obs_len].any(axis=0)
+        for k in np.flatnonzero(observed):
+            slot = slots[int(window.pedestrian_ids[k])]
+            mask = window.position_mask[:grid.obs_len, k]
+            np.testing.assert_array_equal(np.asarray(state.detected[slot]), mask)
+            np.testing.assert_allclose(
+                np.asarray(state.positions[slot])[mask > 0],
+                (window.positions[:grid.obs_len, k] + window.origin)[mask > 0], atol=1e-4)
+        assert sorted(out.ids.tolist()) == sorted(
+            int(i) for i in window.pedestrian_ids[:window.num_predicted])
+        checked += 1
+    assert checked == 6
+
+
+def test_slots_are_reused_a_new_track_is_partial_and_capacity_grows():
+    run = load_model("pretrained:crowdnav_sim")
+    player = stream.Stream(run, capacity=8)
+    for t in range(3):
+        out = player.step([5, 9], [[0.25 * t, 0.0], [1.0, 0.3 * t]])
+    assert sorted(out.ids.tolist()) == [5, 9] and out.futures.shape == (2, 5, 2)
+    out = player.step([5, 9, 40], [[0.75, 0.0], [1.0, 0.9], [3.0, 3.0]])
+    state = player.state
+    slot = int(np.flatnonzero(np.asarray(state.track_ids) == 40)[0])
+    np.testing.assert_array_equal(np.asarray(state.detected[slot]), [0, 0, 0, 0, 1])
+    assert 40 not in out.ids                # seen once: no displacement yet, not predicted
+    for t in range(5):                      # 9 and 40 vanish; 5 walks on
+        player.step([5], [[1.0 + 0.25 * t, 0.0]])
+    assert sorted(i for i in np.asarray(player.state.track_ids).tolist() if i >= 0) == [5]
+    crowd = np.arange(30)
+    out = player.step(crowd, np.stack([crowd * 0.5, crowd * 0.0], 1))
+    assert player.state.capacity == 32 and int(player.state.dropped) == 0
+    assert sorted(np.asarray(player.state.track_ids).tolist())[-30:] == list(range(30))
+
+
+def test_bad_frames_are_refused_in_one_line():
+    player = stream.Stream(load_model("pretrained:crowdnav_sim"))
+    with pytest.raises(DataError, match="track id 3 appears twice in one frame"):
+        player.step([3, 3], [[0, 0], [1, 1]])
+    with pytest.raises(DataError, match=r"track 7's position is \[nan, 0.0\]: not finite"):
+        player.step([7], [[np.nan, 0]])
+    with pytest.raises(DataError, match="track ids must be integers from 0"):
+        player.step([-2], [[0, 0]])
+
+
+def test_the_pure_step_vmaps_over_robots():
+    run = load_model("pretrained:crowdnav_sim")
+    model = stream.StreamModel(run.model_config)
+    step = jax.jit(jax.vmap(stream.make_step(model), in_axes=(None, 0, 0, 0)))
+    robots, capacity = 3, 8
+    state = jax.vmap(lambda _: stream.init_state(capacity, run.model_config.obs_len))(
+        jnp.arange(robots))
+    keys = jax.random.split(jax.random.key(0), robots)
+    for t in range(4):
+        ids = jnp.tile(jnp.array([1, 2, stream.FREE, stream.FREE]), (robots, 1))
+        xy = jnp.stack([jnp.array([[0.3 * t, r], [r, 0.2 * t], [0, 0], [0, 0]], jnp.float32)
+                        for r in range(robots)])
+        state, futures, predicted, _, _ = step(run.params, state, stream.Frame(ids, xy), keys)
+    assert futures.shape == (robots, 1, 5, capacity, 2)
+    single = stream.Stream(run)
+    for t in range(4):
+        out = single.step([1, 2], [[0.3 * t, 2.0], [2.0, 0.2 * t]])
+    np.testing.assert_allclose(np.asarray(futures[2, 0, :, :2]).swapaxes(0, 1), out.futures,
+                               atol=1e-5)
+
+
+@pytest.mark.parametrize("method, pooled", [("dtaci", True), ("aci", True), ("dtaci", False)])
+def test_regions_are_issued_with_the_predictions_and_scored_k_steps_later(method, pooled):
+    run = load_model("pretrained:crowdnav_sim")
+    grid = run.model_config.grid
+    tracks = to_model_rate(read_tracks(SIM), 4.0, grid.hz)
+    regions = stream.Regions(method, alpha=0.1, pooled=pooled)
+    player = stream.Stream(run, regions=regions)
+    covered = scored = 0
+    issued_before = {}
+    for t, (f, ids, xy) in enumerate(frames_of(tracks)):
+        out = player.step(ids, xy)
+        assert out.radii.shape == (len(out.ids), grid.pred_len)
+        assert np.all(out.radii >= 0)
+        if pooled and len(out.ids):         # pooled: one radius per horizon step for everyone
+            np.testing.assert_array_equal(out.radii, np.broadcast_to(out.radii[0],
+                                                                     out.radii.shape))
+        delayed = out.delayed
+        # The horizon-k score of track slot s belongs to the prediction made k steps ago,
+        # with the radius issued then.
+        for slot, k in zip(*np.nonzero(delayed.mask)):
+            assert delayed.issued[slot, k] == issued_before[t - k - 1][slot, k]
+        issued_before[t] = np.asarray(player.state.feed.issued[t % grid.pred_len])
+        covered += int(np.sum(delayed.mask & (delayed.scores <= delayed.issued)))
+        scored += int(np.sum(delayed.mask))
+    assert scored > 1000
+    assert 0.8 < covered / scored < 0.97, covered / scored
+
+
+def test_the_conformal_command_reports_coverage_and_radius_per_horizon_step(tmp_path, capsys):
+    """`python -m gst_jax.conformal` on the simulated crowd: JSON with coverage and radius
+    per predicted step, split calibrated on the first 30 % of frames, and the figure."""
+    from gst_jax.conformal.__main__ import main
+
+    argv = ["pretrained:crowdnav_sim", "--data", str(SIM), "--fps", "4", "--split", "all",
+            "--max-frames", "60"]
+    results = {}
+    for method in ("split", "dtaci"):
+        figure = tmp_path / f"{method}.png"
+        main([*argv, "--method", method, "--json", "--figure", str(figure)])
+        results[method] = json.loads(capsys.readouterr().out)
+        assert figure.stat().st_size > 10_000
+    for result in results.values():
+        assert result["frames"] == 60 and result["calibration_frames"] == 18
+        assert len(result["coverage"]) == len(result["radius"]) == 5
+        assert all(0.5 < c <= 1 for c in result["coverage"])
+        assert all(0 < r < 5 for r in result["radius"])
+        assert result["scores"][0] > result["scores"][-1] > 0    # step k is scored k steps later
+    assert results["split"]["split_calibration_scores"] > 0
+    main([*argv, "--method", "aci", "--max-frames", "30"])
+    table = capsys.readouterr().out
+    assert "coverage  radius (m)" in table and table.count("\n") == 2 + 5
+
+
+def test_the_shifted_crowd_of_the_coverage_study_steps_twice_as_far_halfway():
+    """experiments/conformal_coverage.py's speed shift: every simulator step for the first
+    third, every second step after, as many frames: the speed doubles halfway."""
+    from conformal_coverage import speed_doubling_crowd
+
+    frames = speed_doubling_crowd(duration_s=30.0)            # 121 simulator steps
+    steps = np.diff([frame for frame, _, _ in frames])
+    assert len(frames) == 81 and list(steps[:39]) == [1] * 39 and set(steps[40:]) == {2}
