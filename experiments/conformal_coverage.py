@@ -27,6 +27,7 @@ import argparse
 import json
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from _common import add_results_flags, results_folder
@@ -53,7 +54,7 @@ def speed_doubling_crowd(episode: int = 900, duration_s: float = 150.0) -> list[
     return [(t, np.flatnonzero(detected[t]), positions[t][detected[t]]) for t in steps]
 
 
-def cases() -> dict[str, tuple[str, callable, str]]:
+def cases() -> dict[str, tuple[str, Callable, str]]:
     """name: (model, its streams (a function: built when the case runs), what it shows)."""
     def scene(name):
         return lambda run: scene_streams(DataConfig(scene=name), "test", run.model_config.grid)
