@@ -198,7 +198,8 @@ def conformal_regions(history, futures, radii, truth, coverage, radius, alpha: f
     handles = [plt.Line2D([], [], color=c, label=label) for c, label in (
         ("tab:blue", "observed"), ("tab:green", "what happened"), ("tab:red", "predicted"))]
     handles += [plt.Line2D([], [], color=c, marker="o", ls="", mfc="none",
-                           label=f"disc at {(k + 1) * step_s:.1f} s") for c, k in zip(colors, steps)]
+                           label=f"disc at {(k + 1) * step_s:.1f} s")
+                for c, k in zip(colors, steps)]
     scene_ax.legend(handles=handles, fontsize=7, loc="best")
     scene_ax.set_aspect("equal", adjustable="datalim")
     scene_ax.autoscale_view()

@@ -271,6 +271,13 @@ def make_step(model: StreamModel, regions: Regions | None = None) -> Callable:
     return step
 
 
+@functools.lru_cache(maxsize=16)
+def _jitted_step(model: StreamModel, regions: Regions | None) -> Callable:
+    """`make_step` jitted once per (model, regions): streams of one model, one after another
+    (a recorded scene's files), share its compiled programs."""
+    return jax.jit(make_step(model, regions))
+
+
 class StreamOutput(NamedTuple):
     """One frame's predictions, for the tracks predicted now (detected at both of the last
     two steps): ids (L,), futures (L, P, 2) in mean mode or (L, K, P, 2), and with regions
@@ -308,7 +315,7 @@ class Stream:
         self.frames = 0
         config = run.model_config
         self.state = init_state(bucket_size(capacity), config.obs_len, regions, config.pred_len)
-        self._step = jax.jit(make_step(self.model, regions))
+        self._step = _jitted_step(self.model, regions)
 
     def step(self, ids, positions, robot_xy=None) -> StreamOutput:
         ids, positions = _checked_frame(ids, positions)
