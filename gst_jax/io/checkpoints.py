@@ -9,6 +9,7 @@ import logging
 import os
 import sys
 import tempfile
+import threading
 import warnings
 from pathlib import Path
 from typing import Any, Iterator, NamedTuple
@@ -214,6 +215,11 @@ def _failures_quiet() -> Iterator[None]:
         except BaseException:
             for name in ("asyncio", "absl"):
                 logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+            # What the writer threads leave behind reaches stderr after the error line, at
+            # exit: exceptions in threads ("Event loop is closed"), unraisable ones, and
+            # their coroutines never awaited. The failure is already being reported.
+            threading.excepthook = sys.unraisablehook = lambda *_: None
+            warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
             raise
         else:
             held.seek(0)
