@@ -103,7 +103,8 @@ def markdown(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", nargs="*", default=list(cases()), choices=list(cases()),
+    table = cases()
+    parser.add_argument("--cases", nargs="*", default=list(table), choices=list(table),
                         help="which cases (default: all)")
     add_results_flags(parser, "conformal_coverage", "conformal_coverage.md/.json and the "
                       "records runs/*.json", runs=False)
@@ -112,7 +113,7 @@ def main(argv: list[str] | None = None) -> None:
     (out / "runs").mkdir(parents=True, exist_ok=True)
     rows, progress = [], Progress()
     for name in args.cases:
-        model, streams_of, shows = cases()[name]
+        model, streams_of, shows = table[name]
         run, results = load_model(model), {}
         for method in METHODS:
             record = out / "runs" / f"conformal-{name}-{method}.json"

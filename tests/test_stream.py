@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import data, stream
+from gst_jax import coverage, data, stream
 from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
 from gst_jax.errors import DataError
@@ -25,9 +25,7 @@ SIM = Path(__file__).parents[1] / "data" / "samples" / "sim_crowds" / "episode_0
 
 def frames_of(tracks) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """(frame id, ids, positions) of every step of a file's grid, empty steps included."""
-    steps = range(tracks.frames.min(), tracks.frames.max() + 1, tracks.frame_step)
-    return [(f, tracks.pedestrians[tracks.frames == f], tracks.xy[tracks.frames == f])
-            for f in steps]
+    return list(coverage.frames(tracks, tracks.frames.min(), tracks.frames.max()))
 
 
 def replay(run, tracks, **options) -> dict[int, stream.StreamOutput]:

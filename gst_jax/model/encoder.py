@@ -62,10 +62,10 @@ class NodeEncoderLayer(nn.Module):
         if candidates is not None:
             # Each target's keys and values are its candidates' rows (and the ghost's): a
             # target axis on them, which `per` adds to the exact model's subscripts.
-            rows = candidates if no_ghost else with_ghost(candidates, num_nodes)
+            neighbours = with_ghost(candidates, num_nodes)                   # (..., N, K+1)
+            rows = candidates if no_ghost else neighbours
             k, v = gather_neighbours(k, rows), gather_neighbours(v, rows)    # (..., N, K+1, d)
-            mask = jnp.take_along_axis(sampled_adjacency, with_ghost(candidates, num_nodes),
-                                       axis=-1, mode="clip")                 # (..., N, K+1)
+            mask = jnp.take_along_axis(sampled_adjacency, neighbours, axis=-1, mode="clip")
             per = "l"
         split = lambda t: t.reshape(t.shape[:-1] + (heads, d // heads))
         scores = jnp.einsum(f"...lhc,...{per}mhc->...hlm", split(q), split(k)) / jnp.sqrt(

@@ -211,7 +211,7 @@ def _resume(training: Training, saves: _Saves, config: dict,
         progress.line(f"starting fresh: no checkpoint in {saves.workdir.path}")
         saves.noted(None)
         return training.init_state(), [], 1, None
-    inside = " at step " in saves.saved          # "epoch 3 at step 7", else "epoch 5"
+    inside = so_far is not None and so_far.steps_done > 0       # saved: "epoch 3 at step 7"
     progress.line(f"resuming {saves.workdir.path} {'from' if inside else 'after'} {saves.saved}")
     return state, records, last_epoch + 1, so_far
 
