@@ -3,10 +3,11 @@
     python experiments/conformal_coverage.py                # runs/conformal_coverage/
     python experiments/conformal_coverage.py --publish      # results/conformal_coverage.md
 
-Each case plays a stream (`gst_jax.coverage.play`, as `python -m gst_jax.conformal` does) and
-measures split conformal (calibrated on the first 30 % of the frames), ACI and DtACI (pooled
-per horizon step) at alpha = 0.1 on the frames after those 30 %, the same predictions (mean
-mode) for every method:
+Each case plays a stream through the model once (`gst_jax.coverage.record`, as
+`python -m gst_jax.conformal` does) and measures split conformal (calibrated on the first 30 %
+of the frames), ACI and DtACI (pooled per horizon step, their default settings) at
+alpha = 0.1 on the frames after those 30 %, the same predictions (mean mode) for every
+method:
 
 - each ETH/UCY scene's test split (the paper protocol's last 20 % of its files) through the
   scene's shipped model (`pretrained:<scene>_d`);
@@ -16,6 +17,11 @@ mode) for every method:
   walks twice as fast from the middle of the stream's 400 frames on, through
   `pretrained:crowdnav_sim` (trained on such crowds at their own speed). Split conformal is
   calibrated before the change.
+
+ACI's step (gamma = 0.005 per score, `conformal.aci`'s default) was chosen on validation
+streams, never on these: `--select` plays each scene's validation split (protocol paper-val,
+the end of each file's training part) through the same model and tabulates ACI's coverage
+error for each gamma and batch mode (<out>/conformal_selection.md).
 
 Every (case, method) is recorded in <out>/runs/conformal-<case>-<method>.json as it finishes, and
 skipped when its record exists, so an interrupted run continues where it stopped.
@@ -33,7 +39,7 @@ import numpy as np
 from _common import add_results_flags, results_folder
 
 from gst_jax.config import DataConfig
-from gst_jax.coverage import METHODS, FrameRows, play, scene_streams
+from gst_jax.coverage import METHODS, FrameRows, measure, record, scene_streams
 from gst_jax.progress import Progress, hms
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowds import CrowdConfig, simulate_crowd
@@ -101,6 +107,40 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def select(out: Path, progress: Progress) -> str:
+    """ACI's gamma and batch mode on the scenes' validation streams: per setting, the
+    coverage error |coverage - 0.9| weighted by the scores of each (scene, horizon step), and
+    how many (scene, step) cells land within TOLERANCE or issue infinite radii."""
+    recordings = []
+    for scene in SCENES:
+        run = load_model(f"pretrained:{scene}_d")
+        config = DataConfig(scene=scene, protocol="paper-val")
+        recordings.append(record(run, scene_streams(config, "val", run.model_config.grid),
+                                 calibration=CALIBRATION, progress=progress))
+    lines = ["# ACI's step, chosen on the validation streams", "",
+             f"alpha = {ALPHA}; each scene's validation split (protocol paper-val) through its "
+             f"shipped model, scored after the first {CALIBRATION:.0%} of the frames; "
+             f"{sum(r.frames for r in recordings)} frames in all. Made by "
+             "`python experiments/conformal_coverage.py --select`.", "",
+             "| batch | gamma | weighted coverage error | cells within "
+             f"{TOLERANCE} | cells with infinite radii |", "|---|---|---|---|---|"]
+    for batch, gamma in [(b, g) for b in ("sequential", "mean")
+                         for g in (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)]:
+        errors, counts, infinite = [], [], 0
+        for recording in recordings:
+            result, _ = measure(recording, "aci", ALPHA,
+                                options=(("gamma", gamma), ("batch", batch)))
+            errors += [abs(c - (1 - ALPHA)) for c in result["coverage"]]
+            counts += result["scores"]
+            infinite += int(np.isinf(result["radius"]).sum())
+        errors, counts = np.asarray(errors), np.asarray(counts)
+        lines.append(f"| {batch} | {gamma} | {np.sum(errors * counts) / counts.sum():.4f} | "
+                     f"{np.sum(errors <= TOLERANCE)}/{len(errors)} | {infinite} |")
+    table = "\n".join(lines) + "\n"
+    (out / "conformal_selection.md").write_text(table)
+    return table
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     table = cases()
@@ -108,23 +148,30 @@ def main(argv: list[str] | None = None) -> None:
                         help="which cases (default: all)")
     add_results_flags(parser, "conformal_coverage", "conformal_coverage.md/.json and the "
                       "records runs/*.json", runs=False)
+    parser.add_argument("--select", action="store_true", help="only tabulate ACI's gamma on "
+                        "the validation streams (conformal_selection.md)")
     args = parser.parse_args(argv)
     out = results_folder(args)
     (out / "runs").mkdir(parents=True, exist_ok=True)
     rows, progress = [], Progress()
+    if args.select:
+        print(select(out, progress))
+        return
     for name in args.cases:
         model, streams_of, shows = table[name]
-        run, results = load_model(model), {}
+        run, results, recording = load_model(model), {}, None
         for method in METHODS:
-            record = out / "runs" / f"conformal-{name}-{method}.json"
-            if not record.exists():
-                started = time.perf_counter()
-                result, _ = play(run, streams_of(run), method=method, alpha=ALPHA,
-                                 calibration=CALIBRATION, progress=progress)
-                result.update(case=name, model=model, seconds=time.perf_counter() - started)
-                record.write_text(json.dumps(result, indent=1) + "\n")
-                progress.line(f"{name} {method}: {hms(result['seconds'])}")
-            results[method] = json.loads(record.read_text())
+            path = out / "runs" / f"conformal-{name}-{method}.json"
+            if not path.exists():
+                if recording is None:                    # one pass of the model per case
+                    started = time.perf_counter()
+                    recording = record(run, streams_of(run), calibration=CALIBRATION,
+                                       progress=progress)
+                    progress.line(f"{name}: played in {hms(time.perf_counter() - started)}")
+                result, _ = measure(recording, method, ALPHA)
+                result.update(case=name, model=model)
+                path.write_text(json.dumps(result, indent=1) + "\n")
+            results[method] = json.loads(path.read_text())
         rows.append(summary(name, shows, results))
     (out / "conformal_coverage.json").write_text(json.dumps(rows, indent=1) + "\n")
     (out / "conformal_coverage.md").write_text(markdown(rows))

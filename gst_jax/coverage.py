@@ -3,7 +3,9 @@
 
 A file's frames are fed to a `gst_jax.stream.Stream` one model step at a time, from the first
 frame of the split's first window to its end; every prediction is scored at horizon k when
-the position k steps later is observed. The first `calibration` fraction of the frames
+the position k steps later is observed (`record`: once, whatever the methods). Each method
+is then measured on those scores (`measure`): the online ones are fed them as they came back,
+which issues exactly the radii of a stream running the method itself (tests/test_stream.py). The first `calibration` fraction of the frames
 calibrates split conformal (the ceil((n+1)(1-alpha))-th smallest of their scores, per
 horizon step); every method's coverage and mean radius are then measured on the frames
 after it, the same predictions for all: long-run coverage = the fraction of scored
@@ -13,9 +15,11 @@ predictions whose observed position fell within the radius issued with them.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Iterator
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -23,7 +27,7 @@ from gst_jax import conformal, data
 from gst_jax.config import DataConfig
 from gst_jax.data.readers import Tracks
 from gst_jax.progress import Progress
-from gst_jax.stream import Regions, Stream
+from gst_jax.stream import FREE, Regions, Stream
 
 METHODS = ("split", "aci", "dtaci")
 
@@ -59,58 +63,118 @@ class Snapshot:
     truth: np.ndarray
 
 
-def play(run, streams: list[Iterator[FrameRows]], *, method: str, alpha: float = 0.1,
-         pooled: bool = True, calibration: float = 0.3, convention: str = "gst",
-         seed: int = 0, progress: Progress | None = None) -> tuple[dict, Snapshot | None]:
-    """Coverage and mean radius per horizon step of `method` over the streams (iterators of
-    frames, played one after another, each with a fresh stream and regions), and the
-    snapshot of one frame (None if no frame after calibration predicts anyone)."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    if not 0 < alpha < 1 or not 0 <= calibration < 1:
-        raise ValueError(f"alpha must lie in (0, 1) and calibration in [0, 1), got {alpha} and "
-                         f"{calibration}")
+@dataclasses.dataclass
+class Recording:
+    """A stream pass over recorded frames, scored but without regions: per file with frames,
+    per frame, the delayed scores and their mask (F, C, P) and the slots given to new tracks
+    (F, C); `best`: what a snapshot needs of the frame after calibration predicting the most tracks
+    (file, frame index, its slots (L,), and a Snapshot without radii)."""
+
+    files: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    frames: int
+    calibrating: int
+    step_s: float
+    best: tuple[int, int, np.ndarray, Snapshot] | None
+
+
+def record(run, streams: list[Iterator[FrameRows]], *, calibration: float = 0.3,
+           convention: str = "gst", seed: int = 0, progress: Progress | None = None
+           ) -> Recording:
+    """Play the streams (iterators of frames, one after another, each a fresh stream) through
+    the model once and keep every delayed score: what every method is measured on."""
+    if not 0 <= calibration < 1:
+        raise ValueError(f"calibration must lie in [0, 1), got {calibration}")
     streams = [list(s) for s in streams]
     total = sum(len(s) for s in streams)
     calibrating = round(calibration * total)
     horizon = run.model_config.pred_len
-    regions = Regions(None if method == "split" else method, alpha, pooled)
-    scored = []                                  # (scores, mask, issued) (C, P) per frame
-    best = None                                  # (tracks, frame index, file, output, history)
+    files, best, done = [], None, 0
     started = time.perf_counter()
-    for frames_of_file in streams:
-        player = Stream(run, regions=regions, convention=convention, seed=seed,
+    for frames_of_file in filter(None, streams):
+        player = Stream(run, regions=Regions(None), convention=convention, seed=seed,
                         capacity=live_tracks(frames_of_file, run.model_config.obs_len))
+        scores, masks, new_slots = [], [], []
         for index, (frame, ids, xy) in enumerate(frames_of_file):
+            before = np.asarray(player.state.track_ids)
             out = player.step(ids, xy)
-            scored.append((out.delayed.scores, out.delayed.mask, out.delayed.issued))
-            if len(scored) > calibrating and (best is None or len(out.ids) > best[0]):
-                best = (len(out.ids), index, frames_of_file, out, _histories(player, out.ids))
+            after = np.asarray(player.state.track_ids)
+            if len(after) != len(before):
+                raise RuntimeError("the stream grew: live_tracks undercounted")
+            scores.append(out.delayed.scores)
+            masks.append(out.delayed.mask)
+            new_slots.append((after != before) & (after != FREE))
+            done += 1
+            if done > calibrating and (best is None or len(out.ids) > len(best[2])):
+                slots = np.array([int(np.flatnonzero(after == i)[0]) for i in out.ids], int)
+                snapshot = Snapshot(frame, _histories(player, slots), out.futures, None,
+                                    _truth(frames_of_file[index + 1:index + 1 + horizon],
+                                           out.ids, out.futures.shape))
+                best = (len(files), index, slots, snapshot)
             if progress:
-                progress.count("frames", len(scored), total, started)
-    calibration_scores = np.concatenate(                        # (P, n), NaN where none
-        [np.where(m, s, np.nan).T for s, m, _ in scored[:calibrating]] or
-        [np.zeros((horizon, 0))], axis=1)
-    result = {"method": method, "alpha": alpha, "pooled": pooled, "frames": total,
-              "calibration_frames": calibrating, "step_s": run.model_config.step_s}
-    split_radii = None
+                progress.count("frames", done, total, started)
+        files.append(tuple(np.stack(x) for x in (scores, masks, new_slots)))
+    return Recording(files, total, calibrating, run.model_config.step_s, best)
+
+
+def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool = True,
+            options: tuple = (), seed: int = 0) -> tuple[dict, Snapshot | None]:
+    """Coverage and mean radius per horizon step of `method` over a recording, on the frames
+    after its calibration, and the snapshot of its best frame (None if there is none). split:
+    the radii of the calibration frames' scores; aci / dtaci: the recorded scores fed, as they
+    came back, to the online method (`Regions(method, alpha, pooled, options)`), exactly as a
+    stream with those regions would (DtACI's expert draws from `seed`)."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    files = recording.files
+    horizon = files[0][0].shape[-1] if files else 0
+    flat = [(s, m) for scores, masks, _ in files for s, m in zip(scores, masks)]
+    calibrating = recording.calibrating
+    result = {"method": method, "alpha": alpha, "pooled": pooled, "frames": recording.frames,
+              "calibration_frames": calibrating, "step_s": recording.step_s}
     if method == "split":
+        calibration_scores = np.concatenate(                      # (P, n), NaN where none
+            [np.where(m, s, np.nan).T for s, m in flat[:calibrating]] or
+            [np.zeros((horizon, 0))], axis=1)
         valid = np.isfinite(calibration_scores)
         split_radii = np.asarray(jnp.stack([
             conformal.split_radius(calibration_scores[k], valid[k], alpha)
             for k in range(horizon)]))
         result["split_calibration_scores"] = int(valid[0].sum())
+        issued = [np.broadcast_to(split_radii, s.shape) for s, _ in flat]
+        radii_of_file = [np.broadcast_to(split_radii, f[0].shape) for f in files]
+    else:
+        regions = Regions(method, alpha, pooled, tuple(options))
+        keys = jax.random.split(jax.random.key(seed), max(len(files), 1))
+        replayed = [jax.tree.map(np.asarray, _replay(regions, key, *f))
+                    for f, key in zip(files, keys)]
+        radii_of_file = [radii for radii, _ in replayed]
+        issued = [given for _, issued_in_file in replayed for given in issued_in_file]
     covered, counted, radii = np.zeros(horizon), np.zeros(horizon), np.zeros(horizon)
-    for scores, mask, issued in scored[calibrating:]:
-        if split_radii is not None:
-            issued = np.broadcast_to(split_radii, issued.shape)
-        covered += np.sum(mask & (scores <= issued), axis=0)
+    for (scores, mask), given in list(zip(flat, issued))[calibrating:]:
+        covered += np.sum(mask & (scores <= given), axis=0)
         counted += np.sum(mask, axis=0)
-        radii += np.sum(np.where(mask, issued, 0.0), axis=0)
+        radii += np.sum(np.where(mask, given, 0.0), axis=0)
     result.update(scores=counted.astype(int).tolist(),
                   coverage=(covered / np.maximum(counted, 1)).tolist(),
                   radius=(radii / np.maximum(counted, 1)).tolist())
-    return result, None if best is None else _snapshot(best, split_radii, horizon)
+    if recording.best is None:
+        return result, None
+    file_index, index, slots, snapshot = recording.best
+    return result, dataclasses.replace(snapshot,
+                                       radii=radii_of_file[file_index][index][slots])
+
+
+def play(run, streams: list[Iterator[FrameRows]], *, method: str, alpha: float = 0.1,
+         pooled: bool = True, calibration: float = 0.3, convention: str = "gst",
+         seed: int = 0, progress: Progress | None = None) -> tuple[dict, Snapshot | None]:
+    """`record` then `measure`: coverage and mean radius per horizon step of one method."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    recording = record(run, streams, calibration=calibration, convention=convention,
+                       seed=seed, progress=progress)
+    return measure(recording, method, alpha, pooled, seed=seed)
 
 
 def format_table(result: dict) -> str:
@@ -125,24 +189,44 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def _histories(player: Stream, ids: np.ndarray) -> np.ndarray:
-    """(L, T, 2) the observed steps of these tracks, NaN where not detected."""
+@functools.partial(jax.jit, static_argnums=0)
+def _replay(regions: Regions, key: jax.Array, scores: jax.Array, masks: jax.Array,
+            new_slots: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The radii (F, C, P) a stream with `regions` issues at each of a file's F frames, from
+    the scores that came back at each (F, C, P) (`Regions.advance` scanned over the frames),
+    and the radii issued with those scores (F, C, P): horizon k's, k frames earlier."""
+    frames, capacity, horizon = scores.shape
+    ks = jnp.arange(1, horizon + 1)
+
+    def step(carry, x):
+        state, ring = carry                        # ring (P, C, P): radii of the last P frames
+        t, score, mask, new, key = x
+        issued = jnp.where(mask, ring[(t - ks) % horizon, :, ks - 1].T, 0.0)
+        state, radii = regions.advance(state, key, new,
+                                       conformal.DelayedScores(score, mask, issued))
+        return (state, ring.at[t % horizon].set(radii)), (radii, issued)
+
+    ring = jnp.zeros((horizon, capacity, horizon), scores.dtype)
+    xs = (jnp.arange(frames), scores, masks, new_slots, jax.random.split(key, frames))
+    return jax.lax.scan(step, (regions.init(capacity, horizon), ring), xs)[1]
+
+
+def _histories(player: Stream, slots: np.ndarray) -> np.ndarray:
+    """(L, T, 2) the observed steps of the tracks in these slots, NaN where not detected."""
     state = player.state
-    slots = [int(np.flatnonzero(np.asarray(state.track_ids) == i)[0]) for i in ids]
     positions = np.asarray(state.positions)[slots]
     return np.where(np.asarray(state.detected)[slots][..., None] > 0, positions, np.nan)
 
 
-def _snapshot(best, split_radii, horizon: int) -> Snapshot:
-    _, index, frames_of_file, out, history = best
-    truth = np.full(out.futures.shape, np.nan)
-    for k, (_, ids, xy) in enumerate(frames_of_file[index + 1:index + 1 + horizon]):
-        for row, track in enumerate(out.ids):
-            found = np.flatnonzero(ids == track)
+def _truth(later: list[FrameRows], ids: np.ndarray, shape: tuple) -> np.ndarray:
+    """(L, P, 2) where these tracks were seen in the frames after, NaN where not."""
+    truth = np.full(shape, np.nan)
+    for k, (_, frame_ids, xy) in enumerate(later):
+        for row, track in enumerate(ids):
+            found = np.flatnonzero(frame_ids == track)
             if len(found):
                 truth[row, k] = xy[found[0]]
-    radii = out.radii if split_radii is None else np.broadcast_to(split_radii, out.radii.shape)
-    return Snapshot(frames_of_file[index][0], history, out.futures, radii, truth)
+    return truth
 
 
 def scene_streams(data_config: DataConfig, split: str, grid) -> list[Iterator[FrameRows]]:

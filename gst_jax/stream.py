@@ -140,12 +140,15 @@ class Regions:
     from those scores, `gst_jax.conformal.split_radius`). alpha: target miscoverage. pooled:
     one instance per horizon step, fed every track's score (default), or one per slot and
     horizon step, fed that track's alone (GenSafeNav's ROS 2 node; a new track starts from
-    scratch). The scored prediction is the mean of the K samples.
+    scratch). options: (name, value) pairs for the method's constructor, e.g.
+    (("gamma", 0.002),) (`conformal.aci`, `conformal.dtaci`). The scored prediction is the
+    mean of the K samples.
     """
 
     method: str | None = "dtaci"
     alpha: float = 0.1
     pooled: bool = True
+    options: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self):
         if self.method not in ("dtaci", "aci", None):
@@ -153,9 +156,9 @@ class Regions:
 
     @property
     def online(self) -> conformal.OnlineConformal | None:
-        if self.method == "dtaci":
-            return conformal.dtaci(self.alpha)
-        return conformal.aci(self.alpha) if self.method == "aci" else None
+        if self.method is None:
+            return None
+        return getattr(conformal, self.method)(self.alpha, **dict(self.options))
 
     def init(self, capacity: int, horizon: int) -> Any:
         """Fresh states: (P,) pooled, (C, P) per track; DtACI's experts start at 0.1 m per
@@ -181,35 +184,40 @@ class Regions:
         Returns the state, the radii issued with this step's predictions (C, P) and the
         delayed scores (scores, mask, issued: (C, P))."""
         feed = conformal.reset_slots(state.feed, new_slots)
-        regions = state.regions
-        if regions is not None and not self.pooled:             # a new track starts afresh
-            fresh = self.init(state.capacity, feed.predicted.shape[0])
-            regions = jax.tree.map(
-                lambda new, old: jnp.where(new_slots.reshape((-1,) + (1,) * (old.ndim - 1)),
-                                           new, old), fresh, regions)
         mean = jnp.moveaxis(futures.mean(axis=0), 1, 0)                           # (C, P, 2)
         feed, delayed = conformal.score_buffer_update(
             feed, mean, predicted > 0, state.positions[:, -1], state.detected[:, -1] > 0)
-        capacity, horizon = delayed.scores.shape
-        if regions is None:
-            radii = jnp.full((capacity, horizon), jnp.inf)
-        else:
-            scores, mask, issued = delayed
-            if self.pooled:                                     # per horizon: the tracks' batch
-                scores, mask, issued = scores.T, mask.T, issued.T
-            else:                                               # per slot: a batch of one
-                scores, mask, issued = scores[..., None], mask[..., None], issued[..., None]
-            update = self.online.update
-            for _ in range(regions.radius.ndim):
-                update = jax.vmap(update)
-            if self.method == "aci":
-                regions, radii = update(regions, scores, mask, issued)
-            else:
-                regions, radii = update(regions, scores, mask,
-                                        jax.random.uniform(key, regions.radius.shape))
-            radii = jnp.broadcast_to(radii, (capacity, horizon))
+        regions, radii = self.advance(state.regions, key, new_slots, delayed)
         feed = conformal.record_issued(feed, radii)
         return state.replace(feed=feed, regions=regions), radii, delayed
+
+    def advance(self, regions: Any, key: jax.Array, new_slots: jax.Array,
+                delayed: conformal.DelayedScores) -> tuple[Any, jax.Array]:
+        """The conformal state after the delayed scores (C, P) came back (per track, the
+        `new_slots` (C,) start afresh first), and the radii (C, P) to issue now (infinite
+        without a method)."""
+        capacity, horizon = delayed.scores.shape
+        if regions is None:
+            return None, jnp.full((capacity, horizon), jnp.inf)
+        if not self.pooled:                                     # a new track starts afresh
+            fresh = self.init(capacity, horizon)
+            regions = jax.tree.map(
+                lambda new, old: jnp.where(new_slots.reshape((-1,) + (1,) * (old.ndim - 1)),
+                                           new, old), fresh, regions)
+        scores, mask, issued = delayed
+        if self.pooled:                                         # per horizon: the tracks' batch
+            scores, mask, issued = scores.T, mask.T, issued.T
+        else:                                                   # per slot: a batch of one
+            scores, mask, issued = scores[..., None], mask[..., None], issued[..., None]
+        update = self.online.update
+        for _ in range(regions.radius.ndim):
+            update = jax.vmap(update)
+        if self.method == "aci":
+            regions, radii = update(regions, scores, mask, issued)
+        else:
+            regions, radii = update(regions, scores, mask,
+                                    jax.random.uniform(key, regions.radius.shape))
+        return regions, jnp.broadcast_to(radii, (capacity, horizon))
 
 
 @dataclasses.dataclass(frozen=True)

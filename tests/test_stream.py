@@ -178,6 +178,30 @@ def test_regions_are_issued_with_the_predictions_and_scored_k_steps_later(method
     assert 0.8 < covered / scored < 0.97, covered / scored
 
 
+@pytest.mark.parametrize("method, pooled, options", [("aci", True, ()),
+                                                     ("dtaci", False, (("output", "mean"),))])
+def test_measuring_a_recording_gives_what_a_stream_with_regions_issues(method, pooled,
+                                                                        options):
+    """coverage.measure feeds a recording's scores to the method as they came back: the
+    coverage and radii of a stream that issued the regions itself, to float rounding."""
+    run = load_model("pretrained:crowdnav_sim")
+    tracks = to_model_rate(read_tracks(SIM), 4.0, run.model_config.grid.hz)
+    frames = frames_of(tracks)[:80]
+    regions = stream.Regions(method, 0.1, pooled, options)
+    player = stream.Stream(run, regions=regions, capacity=coverage.live_tracks(frames, 8))
+    delayed = [player.step(ids, xy).delayed for _, ids, xy in frames]
+    recording = coverage.record(run, [iter(frames)], calibration=0.25)
+    result, _ = coverage.measure(recording, method, 0.1, pooled, options)
+    after = delayed[recording.calibrating:]
+    mask = np.stack([d.mask for d in after])
+    covered = np.sum(mask & (np.stack([d.scores for d in after]) <=
+                             np.stack([d.issued for d in after])), axis=(0, 1))
+    radius = np.sum(np.where(mask, np.stack([d.issued for d in after]), 0), axis=(0, 1))
+    assert result["scores"] == np.sum(mask, axis=(0, 1)).tolist() and min(result["scores"]) > 50
+    np.testing.assert_allclose(result["coverage"], covered / np.sum(mask, axis=(0, 1)))
+    np.testing.assert_allclose(result["radius"], radius / np.sum(mask, axis=(0, 1)), rtol=1e-5)
+
+
 def test_the_conformal_command_reports_coverage_and_radius_per_horizon_step(tmp_path, capsys):
     """`python -m gst_jax.conformal` on the simulated crowd: JSON with coverage and radius
     per predicted step, split calibrated on the first 30 % of frames, and the figure."""

@@ -50,10 +50,15 @@ without bound and void the guarantee; a caller that must clip gives up the guara
 alpha_t >= 1 the empty region, reported as r = 0 (covering an exact zero score only, which a
 distance between a prediction and an observation almost surely is not). With feedback d
 updates late (see `radius_in_force`) the same argument gives (max(alpha_1, 1 - alpha_1) +
-(d + 1) gamma)/(gamma T). Pooled: err_t is the fraction of the batch's scores outside the
-radius in force, and T counts the updates with at least one score: the guarantee is on the
-average over time steps of those fractions (equal to the fraction of scores when every
-batch is full).
+(d + 1) gamma)/(gamma T). Pooled, a batch of scores per update: `batch="sequential"`
+(default) takes one step per score, each judged against the radius issued with it, exactly
+as a stream of those scores would: T counts scores, d the scores still awaited, and the
+guarantee is on the fraction of scores outside their discs (what `gst_jax.coverage`
+measures). `batch="mean"` takes one step per update with the batch's miss fraction: T counts
+updates, and the guarantee is on the average over updates of those fractions (the fraction
+of scores only when every batch has as many). The level's telescoping sum says more: over
+any stretch of n scores, mean miss - alpha = (level at its start - level at its end) /
+(gamma n), so the coverage error falls as the level settles.
 
 **DtACI** (`dtaci`): GenSafeNav's (tasl-lab/GenSafeNav, CoRL 2025) port of Gibbs & Candès
 2022 ("Conformal inference for online prediction with arbitrary distribution shifts",
@@ -213,24 +218,28 @@ def _insert_sorted(ordered: jax.Array, value: jax.Array) -> jax.Array:
     return jnp.where(position < index, ordered, jnp.where(position == index, value, before))
 
 
-def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000) -> OnlineConformal:
+def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000,
+        batch: str = "sequential") -> OnlineConformal:
     """Adaptive conformal inference (Gibbs & Candès 2021) on a window of the last `window`
-    scores; alpha: target miscoverage, gamma: step of the level.
+    scores; alpha: target miscoverage, gamma: step of the level; batch: "sequential" (one
+    step per valid score) or "mean" (one step per update, with the batch's miss fraction).
 
     init(dtype=None) -> ACIState: level alpha, no scores, radius +inf (nothing seen yet).
     update(state, scores (B,), mask (B,) = None, radius_in_force = None) -> (state, radius):
-      err = the fraction of the valid scores above the radius in force (`state.radius`, or
+      each valid score misses when it is above the radius in force (`state.radius`, or
       `radius_in_force`, () or (B,), the radii issued with the predictions these scores
-      belong to, for delayed feedback: `DelayedScores.issued`); level += gamma (alpha - err);
-      the valid scores enter the window in order, each pushing out the oldest once it is
-      full; radius = the (1 - level) quantile of the window. Scores must be finite where
-      valid. No valid score: nothing changes.
+      belong to, for delayed feedback: `DelayedScores.issued`); level += gamma (alpha - miss)
+      for each of them (sequential) or gamma (alpha - mean miss) once (mean); the valid
+      scores enter the window in order, each pushing out the oldest once it is full;
+      radius = the (1 - level) quantile of the window. Scores must be finite where valid. No
+      valid score: nothing changes.
 
     The window is kept sorted as well, one score in and one out in O(W) each, so that an
     update costs O(B W), not a sort of W (measured: benchmarks/bench_conformal.py).
     """
-    if window < 1:
-        raise ValueError(f"window must be >= 1, got {window}")
+    if window < 1 or batch not in BATCH_MODES:
+        raise ValueError(f"window must be >= 1 (got {window}) and batch one of {BATCH_MODES} "
+                         f"(got {batch!r})")
 
     def init(dtype=None) -> ACIState:
         level = jnp.asarray(alpha, dtype or float)
@@ -256,8 +265,11 @@ def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000) -> OnlineC
         radius = state.radius if radius_in_force is None else radius_in_force
         present = jnp.sum(mask)
         misses = jnp.sum(mask & (scores > radius))
+        # sequential: the sum of the per-score steps, each score judged against the radius
+        # issued with it (the batch's radii were all issued before any of it came back).
+        steps = present if batch == "sequential" else jnp.minimum(present, 1)
         err = misses / jnp.maximum(present, 1)
-        level = jnp.where(present > 0, state.level + gamma * (alpha - err), state.level)
+        level = state.level + gamma * steps * (alpha - err)
         level = level.astype(state.level.dtype)
         carry = (state.scores, state.ordered, state.count, state.head)
         if scores.shape[0] == 1:

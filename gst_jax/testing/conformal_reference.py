@@ -32,10 +32,11 @@ def _empirical_quantile(window, level: float) -> float:
 
 
 def aci(scores, mask, alpha: float, gamma: float, window: int,
-        radii_in_force=None) -> dict[str, np.ndarray]:
+        radii_in_force=None, batch: str = "sequential") -> dict[str, np.ndarray]:
     """ACI (Gibbs & Candès 2021), pooled: err_t = fraction of the step's present scores above
     the radius in force (the current one, or `radii_in_force[t][b]`); alpha_{t+1} = alpha_t +
-    gamma (alpha - err_t); radius = the (1 - alpha_t) empirical quantile of the last `window`
+    gamma (alpha - err_t) ("mean"), or one such step per present score, each with its own
+    miss ("sequential"); radius = the (1 - alpha_t) empirical quantile of the last `window`
     scores, +inf when alpha_t <= 0 or none were seen, 0 when alpha_t >= 1. A step without
     scores changes nothing. Returns radii (T+1,), levels (T+1,), errs (T,) (NaN: no score)."""
     level, recent = float(alpha), deque(maxlen=window)
@@ -52,7 +53,11 @@ def aci(scores, mask, alpha: float, gamma: float, window: int,
             continue
         misses = sum(1 for s, r in zip(present, in_force) if s > r)
         err = misses / len(present)
-        level = level + gamma * (alpha - err)
+        if batch == "mean":
+            level = level + gamma * (alpha - err)
+        else:
+            for s, r in zip(present, in_force):
+                level = level + gamma * (alpha - (s > r))
         recent.extend(present)
         if level <= 0:
             radius = math.inf
