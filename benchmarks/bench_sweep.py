@@ -1,102 +1,123 @@
-"""Sweep cost: one vmapped program for all configurations vs training them one after another.
+"""Sweep cost per member-epoch: the layouts of a sweep's members on this machine.
 
-    python benchmarks/bench_sweep.py --scene zara1 --edge-heads 0,1,2,4,8,16 --steps 12
+    python benchmarks/bench_sweep.py --scene eth --edge-heads 0,1,2,4,8,16 --seeds 3 \\
+        --detection both --steps 4
 
-Three ways to take the same optimiser steps for every configuration (wall time, compilation
-included, as a user would pay it):
-  vmapped     one vmapped training step over the stacked members (gst_jax.training.sweep);
-  sequential  the same traced-n program (head slots for the largest n), one member at a time;
-  separate    each configuration as its own single run (head slots = max(n, 1)), compiled
-              for itself, one after another.
+The same optimiser steps (the first `--steps` of epoch 1, the same batches for every member)
+taken by every member of the sweep, in each layout: once to compile every shape they meet,
+then again, timed:
+
+  all-vmap    every member in one vmapped program, head slots for the largest n (lcm)
+  all-map     the same program with the members looped inside it (`lax.map`), not vmapped
+  n-vmap      one vmapped program per n (its seeds and detection modes), head slots n
+  n-map       one program per n, members looped inside it
+  runs        each member alone, as a single run of its own (head slots max(n, 1))
+
+Reports, per layout and n, the seconds per member-step and the projected member-epoch
+(`steps per epoch x member-step`), and the compile time of the layout's programs.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import jax
 
 from common import peak_rss_gib, print_table, record
 from gst_jax import cli, data
-from gst_jax.config import SCENES, DataConfig, ModelConfig, TrainConfig
+from gst_jax.config import DETECTION, SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.training import members as sweep_members, state as train_state, sweep
 from gst_jax.training import step as train_step
 
+LAYOUTS = ("all-vmap", "all-map", "n-vmap", "n-map", "runs")
 
-def timed_steps(step, state, batches, keys_for, hparams):
-    """(compile_s, run_s) of taking every batch once; compile = first call of each shape."""
-    compile_s = run_s = 0.0
-    seen = set()
-    for index, packed in enumerate(batches):
+
+def timed(step, state, batches, keys_for, hparams) -> tuple[float, float]:
+    """(seconds of a first pass over the batches, compiling each shape; seconds per step of
+    a second pass over the same batches, nothing left to compile)."""
+    seconds = []
+    for _ in range(2):
         start = time.perf_counter()
-        state, metrics = step(state, keys_for(index), packed, hparams)
+        for index, packed in enumerate(batches):
+            state, metrics = step(state, keys_for(index), packed, hparams)
         jax.block_until_ready(metrics["loss"])
-        elapsed = time.perf_counter() - start
-        shapes = {b.shape for b in packed.micro_batches}
-        if shapes <= seen:
-            run_s += elapsed
-        else:
-            seen |= shapes
-            compile_s += elapsed
-    return compile_s, run_s
+        seconds.append(time.perf_counter() - start)
+    return seconds[0], seconds[1] / len(batches)
+
+
+def program(members, train_config, batches, *, member_map: bool) -> tuple[float, float]:
+    """One sweep program over `members`: (first step s, s per step after it)."""
+    config = sweep_members.sweep_model_config(ModelConfig(), members)
+    step = train_step.TrainStep(config, members=True, member_map=member_map)
+    key = jax.random.key(0)
+    return timed(step, sweep.initial_states(config, members), batches,
+                 lambda i: jax.random.split(jax.random.fold_in(key, i), len(members)),
+                 sweep.member_hparams(config, train_config, members, 1))
+
+
+def single_run(member, train_config, batches) -> tuple[float, float]:
+    config = ModelConfig(num_edge_heads=member.edge_heads)
+    step = train_step.TrainStep(config)
+    key = jax.random.key(0)
+    return timed(step, train_state.create_train_state(config, key), batches,
+                 lambda i: jax.random.fold_in(key, i),
+                 train_state.hparams_for_epoch(config, train_config, 1,
+                                               fully_detected_only=member.fully_detected_only))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scene", default="zara1", choices=SCENES, help="dataset (default: zara1)")
-    parser.add_argument("--edge-heads", default="0,1,2,4,8,16", help="n to sweep")
-    parser.add_argument("--seeds", type=int, default=1, help="seeds per configuration")
-    parser.add_argument("--steps", type=int, default=12, help="optimiser steps per member")
-    parser.add_argument("--seed", type=int, default=1000, help="first seed (default: 1000)")
+    parser.add_argument("--scene", default="eth", choices=SCENES, help="dataset (default: eth)")
+    parser.add_argument("--edge-heads", default="0,1,2,4,8,16", type=cli.parse_edge_heads,
+                        help="n to sweep (default: 0,1,2,4,8,16)")
+    parser.add_argument("--seeds", type=int, default=3, help="seeds per configuration")
+    parser.add_argument("--detection", default="both", choices=tuple(DETECTION))
+    parser.add_argument("--steps", type=int, default=4,
+                        help="optimiser steps per member and pass (default: 4)")
+    parser.add_argument("--layouts", default=",".join(LAYOUTS),
+                        help=f"comma-separated, of {', '.join(LAYOUTS)}")
     args = parser.parse_args()
 
-    members = sweep_members.plan_members(cli.parse_edge_heads(args.edge_heads), "partial",
-                                         [args.seed + i for i in range(args.seeds)])
-    config = sweep_members.sweep_model_config(ModelConfig(), members)
-    train_config = TrainConfig(seed=args.seed)
+    members = sweep_members.plan_members(args.edge_heads, args.detection,
+                                         [1000 + i for i in range(args.seeds)])
+    train_config = TrainConfig()
     window_set = data.load_split(DataConfig(scene=args.scene), "train")
-    batches = list(data.training_batches(window_set, batch_size=16, seed=args.seed, epoch=1))
+    steps_per_epoch = math.ceil(len(window_set) / train_config.batch_size)
+    batches = list(data.training_batches(window_set, batch_size=16, seed=1000, epoch=1))
     batches = (batches * (args.steps // len(batches) + 1))[:args.steps]
-    key = jax.random.key(0)
+    by_n = {n: [m for m in members if m.edge_heads == n] for n in args.edge_heads}
     rows = []
 
-    def way(name, run):
-        start = time.perf_counter()
-        compile_s, run_s = run()
-        rows.append(dict(way=name, compile_s=compile_s, run_s=run_s,
-                         total_s=time.perf_counter() - start))
+    def add(layout, n, count, first, per_step):
+        member_step = per_step / count
+        rows.append(record(
+            "sweep_layouts", scene=args.scene, layout=layout, n=n, members=count,
+            compile_s=first - per_step * args.steps, member_step_s=member_step,
+            member_epoch_s=member_step * steps_per_epoch, steps=args.steps))
 
-    def one_after_another(config_of, step_of):
-        """Every member alone: its config, its (possibly shared) jitted step."""
-        compile_s = run_s = 0.0
-        for member in members:
-            alone = config_of(member)
-            c, r = timed_steps(step_of(alone), train_state.create_train_state(alone, key), batches,
-                               lambda i: jax.random.fold_in(key, i),
-                               train_state.hparams_for_epoch(alone, train_config, 1))
-            compile_s, run_s = compile_s + c, run_s + r
-        return compile_s, run_s
-
-    way("vmapped", lambda: timed_steps(
-        train_step.make_train_step(config, members=True), sweep.initial_states(config, members),
-        batches,
-        lambda i: jax.random.split(jax.random.fold_in(key, i), len(members)),
-        sweep.member_hparams(config, train_config, members, 1)))
-    shared_step = train_step.make_train_step(config)
-    way("sequential", lambda: one_after_another(
-        lambda m: sweep_members.member_config(config, m), lambda alone: shared_step))
-    way("separate", lambda: one_after_another(                      # head slots max(n, 1)
-        lambda m: ModelConfig(num_edge_heads=m.edge_heads),
-        lambda alone: train_step.make_train_step(alone)))
-
-    for row in rows:
-        row.update(record("sweep", scene=args.scene, members=len(members), steps=args.steps,
-                          head_slots=config.head_slots, **row))
-        row["vs_vmapped"] = row["total_s"] / rows[0]["total_s"]
-    print(f"{len(members)} members x {args.steps} steps on {args.scene}; "
-          f"peak RSS {peak_rss_gib():.2f} GiB")
-    print_table(rows, ["way", "compile_s", "run_s", "total_s", "vs_vmapped"])
+    for layout in args.layouts.split(","):
+        if layout.startswith("all-"):
+            first, per_step = program(members, train_config, batches,
+                                      member_map=layout == "all-map")
+            add(layout, "all", len(members), first, per_step)
+        elif layout.startswith("n-"):
+            for n, group in by_n.items():
+                first, per_step = program(group, train_config, batches,
+                                          member_map=layout == "n-map")
+                add(layout, n, len(group), first, per_step)
+        elif layout == "runs":
+            for n, group in by_n.items():       # seeds and detection cost alike: one each
+                first, per_step = single_run(group[0], train_config, batches)
+                add(layout, n, 1, first, per_step)
+        else:
+            raise SystemExit(f"unknown layout {layout!r}; choose from {', '.join(LAYOUTS)}")
+        print_table(rows[-1:], ["layout", "n", "members", "compile_s", "member_step_s",
+                                "member_epoch_s"])
+    print(f"{args.scene}: {len(window_set)} training windows, {steps_per_epoch} steps an "
+          f"epoch; peak RSS {peak_rss_gib():.2f} GiB")
+    print_table(rows, ["layout", "n", "members", "compile_s", "member_step_s", "member_epoch_s"])
 
 
 if __name__ == "__main__":

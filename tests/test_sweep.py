@@ -154,3 +154,23 @@ def test_summary_quantities_and_cross_dataset_figures(tmp_path):
                        (figures.sparse_gain_against_density, "b.png"),
                        (figures.best_n_per_dataset, "c.png")):
         assert draw(all_results, tmp_path / name).stat().st_size > 5_000
+
+
+def test_members_looped_in_one_program_step_as_the_vmapped_members():
+    """`member_map` (lax.map over the members) gives the losses and gradients of vmapping
+    them (Adam's update divides by the gradients' scale, so the states are compared loosely:
+    a gradient of 1e-9 against 1e-8 moves a parameter by the learning rate)."""
+    members = [Member(0, False, 3), Member(2, True, 4)]
+    config = sweep_members.sweep_model_config(ModelConfig(), members)
+    train_set = data.load_split(DataConfig(scene="zara1"), "train").subset(range(2))
+    packed = next(iter(data.training_batches(train_set, batch_size=2, seed=0, epoch=1)))
+    hparams = sweep.member_hparams(config, TrainConfig(), members, 1)
+    keys = jax.random.split(jax.random.key(5), len(members))
+    params = sweep.initial_states(config, members).params
+    vmapped = make_train_step(config, members=True).loss_and_grads(params, keys, packed,
+                                                                   hparams)
+    mapped = make_train_step(config, members=True, member_map=True)
+    chex.assert_trees_all_close(mapped.loss_and_grads(params, keys, packed, hparams), vmapped,
+                                rtol=1e-4, atol=1e-6)
+    state, metrics = mapped(sweep.initial_states(config, members), keys, packed, hparams)
+    assert bool(np.all(metrics["finite"])) and np.asarray(state.step).tolist() == [1, 1]

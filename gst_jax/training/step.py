@@ -47,8 +47,10 @@ class TrainStep:
 
     Two kinds of compiled program: the gradient of one micro-batch added to the running sum
     (one per micro-batch shape, so an epoch compiles one per bucket it meets) and the Adam
-    update (one). With `members`, both are vmapped over a leading member axis of the state,
-    key and hparams (a sweep); the packed step is shared.
+    update (one). With `members`, both run over a leading member axis of the state, key and
+    hparams (a sweep; the packed step is shared): vmapped, or with `member_map` looped over
+    the members inside the one program (`lax.map`: the members' work is not batched, each
+    runs the single run's computation).
 
     A step whose loss or gradients are not finite leaves the state unchanged and reports
     `finite = False`; the epoch loop decides what that means (stop, or count and go on).
@@ -59,7 +61,7 @@ class TrainStep:
     """
 
     def __init__(self, config: ModelConfig, *, rotate: bool = True, members: bool = False,
-                 devices: Devices | None = None):
+                 member_map: bool = False, devices: Devices | None = None):
         optimizer = make_optimizer()
         self.devices, self.members = devices, members
 
@@ -84,9 +86,10 @@ class TrainStep:
             return jnp.zeros((), jnp.float32), jax.tree.map(jnp.zeros_like, params)
 
         if members:
-            accumulate = jax.vmap(accumulate, in_axes=(0, 0, None, 0, None, 0, 0))
-            update = jax.vmap(update)
-            zeros = jax.vmap(zeros)
+            over_members = _member_map if member_map else jax.vmap
+            accumulate = over_members(accumulate, in_axes=(0, 0, None, 0, None, 0, 0))
+            update = over_members(update)
+            zeros = over_members(zeros)
         self._accumulate = jax.jit(accumulate, donate_argnums=(5, 6))
         self._update = jax.jit(update, donate_argnums=0)
         self._zeros = jax.jit(zeros)
@@ -127,6 +130,19 @@ class TrainStep:
         return self._update(state, loss, grads, hparams)
 
 
+def _member_map(fn, in_axes=0):
+    """`fn` over the leading axis of the arguments whose in_axes entry is 0 (the others
+    shared), as `jax.vmap` takes it, but looped with `lax.map`."""
+    def mapped(*args):
+        axes = in_axes if isinstance(in_axes, tuple) else (in_axes,) * len(args)
+
+        def one(per_member):
+            given = iter(per_member)
+            return fn(*[next(given) if axis == 0 else arg for arg, axis in zip(args, axes)])
+        return jax.lax.map(one, [arg for arg, axis in zip(args, axes) if axis == 0])
+    return mapped
+
+
 def all_finite(tree: Any) -> jax.Array:
     """() bool: every floating-point entry of the pytree is finite."""
     return jnp.all(jnp.array([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree.leaves(tree)
@@ -135,11 +151,12 @@ def all_finite(tree: Any) -> jax.Array:
 
 @functools.lru_cache(maxsize=1)
 def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool = False,
-                    devices: Devices | None = None) -> TrainStep:
+                    member_map: bool = False, devices: Devices | None = None) -> TrainStep:
     """The training step of `config` (see TrainStep); already jit-compiled per shape.
 
     The last one made is kept: tracing the model takes longer than loading its programs from
     the persistent cache, so runs of one configuration trained one after another in a
     process (tests, notebooks) trace it once. Only one: each compiled program holds memory
     maps, of which a process may hold 65530 (README)."""
-    return TrainStep(config, rotate=rotate, members=members, devices=devices)
+    return TrainStep(config, rotate=rotate, members=members, member_map=member_map,
+                     devices=devices)
