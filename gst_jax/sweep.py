@@ -1,10 +1,11 @@
-"""Ablation sweeps over n, detection and seeds as one vmapped program (paper Figs. 4-6).
+"""Ablation sweeps over n, detection and seeds as one program (paper Figs. 4-6).
 
     python -m gst_jax.sweep --scene zara1 --edge-heads 0,1,2,4,8,16 --seeds 3 \\
         --fully-detected-only both
 
-Every (n, detection, seed) member is trained by one vmapped training step on the same
-batches, then evaluated on the test split; the work directory gets results.json, .csv,
+Every (n, detection, seed) member is trained by one training step over the members (looped
+inside the program on a CPU, vmapped on a GPU) on the same batches, then evaluated on the
+test split; the work directory gets results.json, .csv,
 .md and aoe_foe_vs_n.png. Rerunning the command resumes the sweep.
 """
 

@@ -167,8 +167,8 @@ def test_members_looped_in_one_program_step_as_the_vmapped_members():
     hparams = sweep.member_hparams(config, TrainConfig(), members, 1)
     keys = jax.random.split(jax.random.key(5), len(members))
     params = sweep.initial_states(config, members).params
-    vmapped = make_train_step(config, members=True).loss_and_grads(params, keys, packed,
-                                                                   hparams)
+    vmapped = make_train_step(config, members=True, member_map=False).loss_and_grads(
+        params, keys, packed, hparams)
     mapped = make_train_step(config, members=True, member_map=True)
     chex.assert_trees_all_close(mapped.loss_and_grads(params, keys, packed, hparams), vmapped,
                                 rtol=1e-4, atol=1e-6)

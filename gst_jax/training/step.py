@@ -50,7 +50,9 @@ class TrainStep:
     update (one). With `members`, both run over a leading member axis of the state, key and
     hparams (a sweep; the packed step is shared): vmapped, or with `member_map` looped over
     the members inside the one program (`lax.map`: the members' work is not batched, each
-    runs the single run's computation).
+    runs the single run's computation). By default (None) they are looped on one CPU, where
+    that costs 26 % less than vmapping them, and vmapped elsewhere (docs/benchmarks.md,
+    "Sweeps").
 
     A step whose loss or gradients are not finite leaves the state unchanged and reports
     `finite = False`; the epoch loop decides what that means (stop, or count and go on).
@@ -61,9 +63,11 @@ class TrainStep:
     """
 
     def __init__(self, config: ModelConfig, *, rotate: bool = True, members: bool = False,
-                 member_map: bool = False, devices: Devices | None = None):
+                 member_map: bool | None = None, devices: Devices | None = None):
         optimizer = make_optimizer()
         self.devices, self.members = devices, members
+        if member_map is None:              # members split over devices stay vmapped
+            member_map = self.platform == "cpu" and devices is None
 
         def accumulate(params, key, batch, hparams, num_scenes, loss_sum, grad_sum):
             loss, grads = jax.value_and_grad(training_loss)(
@@ -118,11 +122,16 @@ class TrainStep:
         return self.devices.count if self.devices is not None and not self.members else 1
 
     @property
+    def platform(self) -> str:
+        """Where the step runs: "cpu", "gpu", ..."""
+        devices = self.devices.mesh.devices.flat if self.devices is not None else jax.devices()
+        return next(iter(devices)).platform
+
+    @property
     def one_micro_batch(self) -> bool:
         """Whether steps should come as one micro-batch padded to the largest window: on a
         GPU a call costs more than the padding; on a CPU the size buckets are faster."""
-        devices = self.devices.mesh.devices.flat if self.devices is not None else jax.devices()
-        return next(iter(devices)).platform != "cpu"
+        return self.platform != "cpu"
 
     def __call__(self, state: TrainState, key: jax.Array, step: PackedStep, hparams: HParams
                  ) -> tuple[TrainState, dict]:
@@ -151,7 +160,8 @@ def all_finite(tree: Any) -> jax.Array:
 
 @functools.lru_cache(maxsize=1)
 def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool = False,
-                    member_map: bool = False, devices: Devices | None = None) -> TrainStep:
+                    member_map: bool | None = None, devices: Devices | None = None
+                    ) -> TrainStep:
     """The training step of `config` (see TrainStep); already jit-compiled per shape.
 
     The last one made is kept: tracing the model takes longer than loading its programs from

@@ -1,8 +1,9 @@
-"""Ablation sweeps as one vmapped program: sparsity n x detection x seeds (paper Figs. 4-6).
+"""Ablation sweeps as one program: sparsity n x detection x seeds (paper Figs. 4-6).
 
 Every member (n, fully-detected-only, seed) shares one parameter layout (head slots sized for
-the largest n) and one vmapped training step (`make_train_step(..., members=True)`): n, the
-ghost switch and the "F" switch are per-member traced values, the packed step is shared. Member k's keys are those of
+the largest n) and one training step over the members (`make_train_step(..., members=True)`:
+looped inside the program on a CPU, vmapped elsewhere): n, the ghost switch and the "F"
+switch are per-member traced values, the packed step is shared. Member k's keys are those of
 a single run with its seed, so it trains exactly as that run would on the sweep's data order
 (the order of the first seed). A member whose step is not finite keeps its parameters for
 that step and the count is reported; the others go on.
