@@ -12,10 +12,11 @@ import PIL.Image
 import pytest
 
 from gst_jax import simulate
-from gst_jax.config import ModelConfig, TimeGrid
+from gst_jax.config import EVAL_TAU, ModelConfig, TimeGrid
 from gst_jax.data.batch import SceneBatch
 from gst_jax.model import Controls, init_params
 from gst_jax.rollout import rollout
+from gst_jax.runs import load_model
 from gst_jax.simulate.__main__ import main as simulate_main
 
 
@@ -86,3 +87,68 @@ def test_command_runs_a_shipped_model_and_writes_measures_and_figures(tmp_path, 
         assert Path(row["figure"]).stat().st_size > 5_000
         with PIL.Image.open(row["animation"]) as gif:   # one frame per simulated step
             assert (gif.format, gif.n_frames) == ("GIF", simulate.late_crossing().steps + 1)
+
+
+def test_random_encounters_are_reproducible_and_their_empty_slots_never_seen():
+    from gst_jax.simulate import encounters
+
+    first = encounters.sample_encounters(40, seed=3)
+    again = encounters.sample_encounters(40, seed=3)
+    np.testing.assert_array_equal(first.start, again.start)
+    assert set(first.people.tolist()) <= set(range(2, 11)) and len(set(first.kind)) == 4
+    empty = np.arange(11)[None] > first.people[:, None]
+    assert np.all(first.detected_from[empty] > first.steps)
+    assert np.all(np.abs(first.start[empty]) >= 1e3)
+    late = first.kind == encounters.KINDS.index("late")
+    people = ~empty & (np.arange(11)[None] > 0)
+    assert np.all(first.detected_from[late[:, None] & people] >= round(1 / 0.4))
+    assert np.all(first.detected_from[~late[:, None] & people] == 0)
+
+
+def test_encounters_run_as_one_program_equal_each_episode_simulated_alone():
+    """Constant velocity ignores everyone: the robot walks straight and arrives after 9.6 s
+    (within 0.5 m of its goal 12 m away at 1.2 m/s, 0.4 s steps); GST on a batch of
+    encounters moves everyone as `simulate` does on each episode's own agents."""
+    from gst_jax.simulate import encounters
+
+    episodes = encounters.sample_encounters(3, seed=1)
+    positions, _, _ = encounters.run_encounters(simulate.constant_velocity_model, episodes,
+                                                jax.random.key(0))
+    summary = encounters.summarize(encounters.episode_measures(positions, episodes))
+    assert summary["arrived"][0] == 1 and summary["time_to_goal_s"][0] == pytest.approx(9.6)
+    assert summary["freezing_or_u_turn"][0] == 0
+    run = load_model("pretrained:eth_d")
+    config = run.model_config
+    model = simulate.gst_model(run.params, config,
+                               Controls.make(EVAL_TAU, config.num_edge_heads, config.ghost))
+    batched, _, _ = encounters.run_encounters(model, episodes, jax.random.key(0))
+    keys = jax.random.split(jax.random.key(0), 3)
+    agents = 1 + int(episodes.people[0])
+    alone = np.asarray(simulate.simulate(model, episodes.scenario(0), keys[0]))
+    np.testing.assert_allclose(batched[0, :, :agents], alone, atol=1e-4)
+
+
+def test_the_encounter_study_pairs_each_sparse_member_with_its_full_connection(tmp_path):
+    """experiments/encounters.py: finished members by label, and the paired difference of
+    freezing rates on the same episodes with its interval."""
+    from encounters import members, paired_difference
+
+    for name, finished in [("n0-partial-seed1000", True), ("n4-partial-seed1000", True),
+                           ("n16-full-seed1001", False)]:
+        (tmp_path / name / "eval").mkdir(parents=True)
+        if finished:
+            (tmp_path / name / "eval" / "test.json").write_text("{}")
+    assert list(members(tmp_path)) == ["n=F partial 1000", "n=4 partial 1000"]
+    sparse = np.array([1, 0, 0, 0, 1, 0, 0, 0], bool)
+    full = np.array([1, 1, 1, 0, 1, 1, 0, 0], bool)
+    difference, low, high = paired_difference(sparse, full)
+    assert difference == pytest.approx(-3 / 8) and low < difference < high
+    assert paired_difference(full, full) == (0.0, 0.0, 0.0)
+
+
+def test_the_encounter_command_writes_rates_and_their_figure(tmp_path, capsys):
+    simulate_main(["--encounters", "12", "--workdir", str(tmp_path), "--json"])
+    rates = json.loads(capsys.readouterr().out)["constant velocity"]
+    assert rates["episodes"] == 12 and rates["arrived"][0] == 1.0
+    record = json.loads((tmp_path / "encounters.json").read_text())
+    assert record["episodes"] == 12 and (tmp_path / "encounters.png").stat().st_size > 5_000

@@ -2,10 +2,12 @@
 
     python -m gst_jax.simulate runs/eth-paper-d-n1-e200-seed1000 --scenario all
     python -m gst_jax.simulate pretrained:eth runs/sweep-hotel-e10:n4-partial-seed1000
+    python -m gst_jax.simulate pretrained:crowd_d --encounters 1000
 
 Every detected agent, the robot included, moves by the first displacement the model
 predicts; the table gives the robot's minimum distance, collisions, progress, path-length
 ratio and whether it froze or turned back. One PNG (and, with --animate, a GIF) per run.
+With --encounters: rates over random encounters with 95 % intervals, and encounters.png.
 """
 
 from __future__ import annotations
@@ -15,8 +17,10 @@ from pathlib import Path
 
 from gst_jax import cli
 from gst_jax.runs import load_model
+from gst_jax.simulate.encounters import format_encounters
 from gst_jax.simulate.scenarios import SCENARIOS
-from gst_jax.simulate.study import format_markdown, run_scenarios, step_models, time_grid
+from gst_jax.simulate.study import (format_markdown, run_encounter_study, run_scenarios,
+                                    step_models, time_grid)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -32,7 +36,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--edge-heads", default=None, type=cli.parse_edge_heads,
                         help="comma-separated n to run each model with (traced; default: the "
                              "model's own)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the Gumbel samples")
+    parser.add_argument("--encounters", type=cli.positive_int, default=None, metavar="COUNT",
+                        help="instead, COUNT random encounters (gst_jax/simulate/encounters.py)"
+                             ", one program per model: rates with 95%% intervals")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the Gumbel samples (and "
+                        "of the encounters)")
     parser.add_argument("--animate", action="store_true",
                         help="also write an animated GIF of every run")
     cli.add_output_flags(parser, workdir_help="output directory (default: runs/simulate)",
@@ -42,15 +50,20 @@ def main(argv: list[str] | None = None) -> None:
 
 def simulate(args) -> None:
     runs = [load_model(spec) for spec in args.runs]
-    names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
-    rows = run_scenarios(step_models(runs, args.edge_heads), names, Path(args.workdir),
-                         grid=time_grid(runs), seed=args.seed, animate=args.animate)
+    models, out, grid = step_models(runs, args.edge_heads), Path(args.workdir), time_grid(runs)
+    if args.encounters:
+        rows, _ = run_encounter_study(models, args.encounters, out, grid=grid, seed=args.seed)
+        table, written = format_encounters(rows), "encounters.json and encounters.png"
+    else:
+        names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
+        rows = run_scenarios(models, names, out, grid=grid, seed=args.seed, animate=args.animate)
+        table = format_markdown(rows)
+        written = f"results.json and one {'PNG and GIF' if args.animate else 'PNG'} per run"
     if args.json:
         print(json.dumps(rows, indent=2))
         return
-    print(format_markdown(rows))
-    cli.say(f"written: {args.workdir}/results.json and one "
-            f"{'PNG and GIF' if args.animate else 'PNG'} per run")
+    print(table)
+    cli.say(f"written: {out}/{written}")
 
 
 if __name__ == "__main__":

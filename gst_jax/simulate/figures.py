@@ -61,3 +61,23 @@ def animate_run(positions: np.ndarray, scenario: Scenario, path: Path, title: st
         path, writer=PillowWriter(fps=fps), dpi=80)
     plt.close(fig)
     return path
+
+
+def encounter_rates(summaries: dict[str, dict], path: Path, title: str) -> Path:
+    """PNG: per model, the rates of freezing or turning back and of collisions over the
+    random encounters, with their 95 % intervals."""
+    labels = list(summaries)
+    fig, ax = plt.subplots(figsize=(max(4.0, 0.9 * len(labels) + 1.5), 3.4))
+    x = np.arange(len(labels))
+    for offset, (key, name, color) in zip((-0.2, 0.2), [
+            ("freezing_or_u_turn", "froze or turned back", "tab:red"),
+            ("collided", "collided", "tab:blue")]):
+        value, low, high = np.array([summaries[label][key] for label in labels]).T
+        ax.bar(x + offset, value, 0.4, color=color, label=name,
+               yerr=[value - low, high - value], capsize=3)
+    ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=7)
+    ax.set_ylabel("fraction of episodes")
+    ax.set_ylim(0, 1)
+    ax.legend(fontsize=7)
+    ax.set_title(title, fontsize=8)
+    return save(fig, path, dpi=120)

@@ -10,6 +10,7 @@ until its detection step. The whole loop is one jitted `lax.scan` with the model
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Callable
 
 import jax
@@ -53,29 +54,33 @@ def gst_model(params, config: ModelConfig, controls: Controls) -> StepModel:
 
 def simulate(model: StepModel, scenario: Scenario, key: jax.Array) -> jax.Array:
     """Positions (steps + 1, A, 2) of every agent, step 0 first. Jit-compiled closed loop."""
-    start = jnp.asarray(scenario.start, jnp.float32)
-    velocity = jnp.asarray(scenario.velocity, jnp.float32)
+    run = jax.jit(functools.partial(episode, model, steps=scenario.steps,
+                                    obs_len=scenario.grid.obs_len, step_s=scenario.grid.step_s))
+    return run(jnp.asarray(scenario.start, jnp.float32),
+               jnp.asarray(scenario.velocity, jnp.float32),
+               jnp.asarray(scenario.detected_from), key)
+
+
+def episode(model: StepModel, start: jax.Array, velocity: jax.Array, detected_from: jax.Array,
+            key: jax.Array, *, steps: int, obs_len: int, step_s: float) -> jax.Array:
+    """The closed loop of one episode, pure (vmap it over episodes): positions
+    (steps + 1, A, 2) from start (A, 2), the scripted velocities (A, 2) m/s and the step from
+    which each agent is detected (A,) (never, for an agent past `steps`: it walks its line
+    unseen)."""
     # Agents seen from step 0 are also seen during their history before it.
-    obs_len, step_s = scenario.grid.obs_len, scenario.grid.step_s
-    detected_from = jnp.asarray(scenario.detected_from)
     first_seen = jnp.where(detected_from == 0, -obs_len, detected_from)
     history = start[None] + velocity[None] * step_s * jnp.arange(-obs_len + 1, 1)[:, None, None]
 
-    @jax.jit
-    def run(key):
-        def step(carry, t):
-            history, key = carry
-            key, model_key = jax.random.split(key)
-            # Steps t - obs_len + 1 .. t: seen where the agent was already detected then.
-            seen = ((t - obs_len + 1 + jnp.arange(obs_len))[:, None] >= first_seen[None])
-            seen = seen.astype(jnp.float32)
-            predicted = model(history, seen, model_key)
-            detected_now = (t >= detected_from)[:, None]
-            move = jnp.where(detected_now, predicted, velocity * step_s)
-            position = history[-1] + move
-            return (jnp.concatenate([history[1:], position[None]]), key), position
+    def step(carry, t):
+        history, key = carry
+        key, model_key = jax.random.split(key)
+        # Steps t - obs_len + 1 .. t: seen where the agent was already detected then.
+        seen = ((t - obs_len + 1 + jnp.arange(obs_len))[:, None] >= first_seen[None])
+        predicted = model(history, seen.astype(jnp.float32), model_key)
+        detected_now = (t >= detected_from)[:, None]
+        move = jnp.where(detected_now, predicted, velocity * step_s)
+        position = history[-1] + move
+        return (jnp.concatenate([history[1:], position[None]]), key), position
 
-        _, positions = jax.lax.scan(step, (history, key), jnp.arange(scenario.steps))
-        return jnp.concatenate([start[None], positions])
-
-    return run(key)
+    _, positions = jax.lax.scan(step, (history, key), jnp.arange(steps))
+    return jnp.concatenate([start[None], positions])

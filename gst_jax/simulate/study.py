@@ -1,4 +1,5 @@
-"""Every model on every scenario: measures, one PNG (and GIF) per run, results.json."""
+"""Every model on every scenario: measures, one PNG (and GIF) per run, results.json; and every
+model on the same random encounters: rates with intervals, encounters.json and .png."""
 
 from __future__ import annotations
 
@@ -13,8 +14,11 @@ import numpy as np
 from gst_jax.config import EVAL_TAU, TimeGrid
 from gst_jax.errors import RunError
 from gst_jax.model import Controls
+from gst_jax.progress import Progress
 from gst_jax.runs import Run
-from gst_jax.simulate.figures import animate_run, plot_run
+from gst_jax.simulate.encounters import (episode_measures, run_encounters, sample_encounters,
+                                         summarize)
+from gst_jax.simulate.figures import animate_run, encounter_rates, plot_run
 from gst_jax.simulate.loop import StepModel, constant_velocity_model, gst_model, simulate
 from gst_jax.simulate.measures import robot_measures
 from gst_jax.simulate.scenarios import SCENARIOS
@@ -80,3 +84,29 @@ def format_markdown(rows: Sequence[dict]) -> str:
         lines.append("| " + " | ".join(f"{row[c]:.2f}" if isinstance(row[c], float)
                                        else str(row[c]) for c in COLUMNS) + " |")
     return "\n".join(lines)
+
+
+def run_encounter_study(models: Sequence[tuple[str, StepModel]], count: int, out: Path, *,
+                        grid: TimeGrid = TimeGrid(), seed: int = 0,
+                        progress: Progress | None = None) -> tuple[dict, dict]:
+    """Every model on the same `count` random encounters (`encounters.sample_encounters` of
+    `seed`), one program each. Returns (summary per label, with compile and run seconds and
+    episodes per second; per label the episodes' measures) and writes out/encounters.json
+    and out/encounters.png."""
+    episodes = sample_encounters(count, seed, grid)
+    progress = progress or Progress()
+    summaries, rows = {}, {}
+    for label, model in models:
+        positions, compile_s, run_s = run_encounters(model, episodes, jax.random.key(seed))
+        rows[label] = episode_measures(positions, episodes)
+        summaries[label] = {**summarize(rows[label]), "compile_s": compile_s, "run_s": run_s,
+                            "episodes_per_s": count / run_s}
+        progress.line(f"{label}: {count} episodes in {run_s:.1f} s ({count / run_s:.1f}/s) "
+                      f"after {compile_s:.1f} s compiling")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "encounters.json").write_text(json.dumps(
+        {"episodes": count, "seed": seed, "step_s": grid.step_s, "models": summaries},
+        indent=1) + "\n")
+    encounter_rates(summaries, out / "encounters.png",
+                    f"{count} random encounters (seed {seed}), 95% intervals")
+    return summaries, rows
