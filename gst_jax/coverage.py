@@ -138,9 +138,8 @@ def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool 
             [np.where(m, s, np.nan).T for s, m in flat[:calibrating]] or
             [np.zeros((horizon, 0))], axis=1)
         valid = np.isfinite(calibration_scores)
-        split_radii = np.asarray(jnp.stack([
-            conformal.split_radius(calibration_scores[k], valid[k], alpha)
-            for k in range(horizon)]))
+        split_radii = np.asarray(jax.vmap(conformal.split_radius, (0, 0, None))(
+            calibration_scores, valid, alpha))
         result["split_calibration_scores"] = int(valid[0].sum())
         issued = [np.broadcast_to(split_radii, s.shape) for s, _ in flat]
         radii_of_file = [np.broadcast_to(split_radii, f[0].shape) for f in files]

@@ -142,7 +142,7 @@ class Predictor:
         """The fastest chunking within the budget (and the memory available): today's single
         vmap if it fits, else as many samples at once as fit, observing step by step."""
         num_samples = self.num_samples
-        available = available_memory(_device_of(args[2].positions))
+        available = available_memory(_devices(args[2].positions)[0])
         budget = self.memory_budget_bytes
         target = budget if available is None else min(budget, available[0])
         whole = self._measure(num_samples, None, args)
@@ -175,9 +175,10 @@ class Predictor:
         if stats is None:
             return Chunking(samples_at_once, observed_steps_at_once, None, None)
         positions = args[2].positions
-        on_cpu = _device_of(positions).platform == "cpu"
+        devices = _devices(positions)
+        on_cpu = devices[0].platform == "cpu"
         # Host devices of one CPU (XLA_FLAGS device count) share its memory.
-        xla_bytes = (_device_count(positions) if on_cpu else 1) * (
+        xla_bytes = (len(devices) if on_cpu else 1) * (
             stats.temp_size_in_bytes + stats.argument_size_in_bytes + stats.output_size_in_bytes)
         return Chunking(samples_at_once, observed_steps_at_once, xla_bytes,
                         int(xla_bytes * CPU_RUNTIME_MARGIN) if on_cpu else xla_bytes)
@@ -232,14 +233,10 @@ def _jitted_predict(config: ModelConfig, num_samples: int, with_graph: bool, mea
     return predict
 
 
-def _device_of(array) -> jax.Device:
+def _devices(array) -> list[jax.Device]:
+    """The devices holding `array`, by id (the default device for a host array)."""
     devices = getattr(getattr(array, "sharding", None), "device_set", None)
-    return min(devices, key=lambda d: d.id) if devices else jax.devices()[0]
-
-
-def _device_count(array) -> int:
-    devices = getattr(getattr(array, "sharding", None), "device_set", None)
-    return len(devices) if devices else 1
+    return sorted(devices, key=lambda d: d.id) if devices else jax.devices()[:1]
 
 
 def _refusal(num_samples: int, batch: SceneBatch, obs_len: int, needed: int, available: int,

@@ -115,17 +115,13 @@ def sample_encounters(count: int, seed: int = 0, grid: TimeGrid = TimeGrid(),
     return Encounters(start, velocity, detected_from, people, kind, grid, duration_s)
 
 
-@functools.lru_cache(maxsize=4)
-def _episodes(model: StepModel, steps: int, obs_len: int, step_s: float):
-    return jax.jit(jax.vmap(functools.partial(episode, model, steps=steps, obs_len=obs_len,
-                                              step_s=step_s)))
-
-
 def run_encounters(model: StepModel, encounters: Encounters, key: jax.Array
                    ) -> tuple[np.ndarray, float, float]:
     """Positions (E, steps + 1, A, 2) of every episode, one jitted program over all of them
     (each its own key), and the seconds it took to compile and to run."""
-    run = _episodes(model, encounters.steps, encounters.grid.obs_len, encounters.grid.step_s)
+    grid = encounters.grid
+    run = jax.jit(jax.vmap(functools.partial(episode, model, steps=encounters.steps,
+                                             obs_len=grid.obs_len, step_s=grid.step_s)))
     args = (jnp.asarray(encounters.start, jnp.float32),
             jnp.asarray(encounters.velocity, jnp.float32),
             jnp.asarray(encounters.detected_from), jax.random.split(key, len(encounters.people)))
