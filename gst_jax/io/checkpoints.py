@@ -12,7 +12,7 @@ import tempfile
 import threading
 import warnings
 from pathlib import Path
-from typing import Any, Iterator, NamedTuple
+from typing import Any, Callable, Iterator, NamedTuple
 
 import jax
 import numpy as np
@@ -71,17 +71,13 @@ class Checkpointer:
                      metrics=ocp.args.JsonSave(records))
         if progress is not None:
             items["progress"] = ocp.args.JsonSave(progress)
-        with writes_completed(), _failures_quiet():
-            try:
-                self._manager.save(epoch, args=ocp.args.Composite(**items))
-                self._manager.wait_until_finished()
-            except BaseException:
-                # Its writer threads end now, while stderr is held back, not at exit, where
-                # they printed "Event loop is closed" tracebacks after the one-line error.
-                with contextlib.suppress(Exception):
-                    self._manager.close()
-                raise
-            self._record_checksum(epoch)
+        # After a failure the manager closes while stderr is held back and the writer threads'
+        # reports are silenced, not at exit, where they printed "Event loop is closed"
+        # tracebacks after the one-line error.
+        with writes_completed(), _failures_quiet(then=self._manager.close):
+            self._manager.save(epoch, args=ocp.args.Composite(**items))
+            self._manager.wait_until_finished()
+        self._record_checksum(epoch)
 
     def restore(self, like_state: Any, epoch: int | None = None, *,
                 fall_back: bool = False) -> Restored:
@@ -201,11 +197,13 @@ class Checkpointer:
 
 
 @contextlib.contextmanager
-def _failures_quiet() -> Iterator[None]:
+def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
     """A failed write (a full disk) is raised, once: orbax's and tensorstore's writer threads
     also print it, in pages of tracebacks on stderr during the save and from asyncio's tasks
     at exit. So stderr (the file descriptor, which C++ writes to as well) is held back during
-    the save and replayed if it succeeds, and after a failure their loggers stay quiet."""
+    the save and replayed if it succeeds; after a failure their reports are silenced first,
+    and only then is `then` called (closing the writers, whose threads fail on a closed event
+    loop) and stderr given back."""
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
         stderr = os.dup(2)
@@ -215,11 +213,12 @@ def _failures_quiet() -> Iterator[None]:
         except BaseException:
             for name in ("asyncio", "absl"):
                 logging.getLogger(name).setLevel(logging.CRITICAL + 1)
-            # What the writer threads leave behind reaches stderr after the error line, at
-            # exit: exceptions in threads ("Event loop is closed"), unraisable ones, and
-            # their coroutines never awaited. The failure is already being reported.
+            # Exceptions in threads, unraisable ones and coroutines never awaited: the
+            # failure is already being reported.
             threading.excepthook = sys.unraisablehook = lambda *_: None
             warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
+            with contextlib.suppress(Exception):
+                then()
             raise
         else:
             held.seek(0)
