@@ -14,7 +14,8 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).parents[1] / "gst_jax"
 # Command modules: argument parsing and printing around one library call.
-COMMANDS = {"gst_jax.train", "gst_jax.evaluate", "gst_jax.sweep", "gst_jax.plot", "gst_jax.cli"}
+COMMANDS = {"gst_jax.train", "gst_jax.evaluate", "gst_jax.sweep", "gst_jax.plot", "gst_jax.cli",
+            "gst_jax.navigate"}
 
 
 # The layers of docs/architecture.md, bottom up: a module may import its own layer and those
@@ -23,7 +24,7 @@ LAYERS = (
     ("foundation", {"gst_jax.config", "gst_jax.errors", "gst_jax.progress", "gst_jax.compiles"}),
     ("data", {"gst_jax.data.", "gst_jax.simulate.crowds", "gst_jax.safe_pickle"}),
     ("numerics", {"gst_jax.graph", "gst_jax.noise", "gst_jax.gumbel", "gst_jax.augment",
-                  "gst_jax.parallel"}),
+                  "gst_jax.parallel", "gst_jax.simulate.orca"}),
     ("model", {"gst_jax.model."}),
     ("rollout", {"gst_jax.rollout"}),
     ("outputs", {"gst_jax.losses", "gst_jax.metrics", "gst_jax.predict", "gst_jax.interop",
@@ -31,7 +32,8 @@ LAYERS = (
                  "gst_jax.prediction_files", "gst_jax.figures", "gst_jax.simulate",
                  "gst_jax.simulate.scenarios", "gst_jax.simulate.measures",
                  "gst_jax.simulate.loop", "gst_jax.simulate.figures",
-                 "gst_jax.simulate.encounters"}),
+                 "gst_jax.simulate.encounters", "gst_jax.simulate.environment",
+                 "gst_jax.simulate.planner", "gst_jax.simulate.navigation"}),
     ("evaluation", {"gst_jax.evaluation", "gst_jax.coverage", "gst_jax.testing."}),
     ("state", {"gst_jax.io.", "gst_jax.pretrained", "gst_jax.training",
                "gst_jax.training.state", "gst_jax.training.schedules",

@@ -1,0 +1,106 @@
+"""CrowdNav++'s task with GST in the loop as one jitted program: environment steps per
+second, and one MPC planning step (`gst_jax.simulate.environment`, `planner`).
+
+    python benchmarks/bench_env.py                               # 64, 256, 1024 environments
+    python benchmarks/bench_env.py --envs 64 --predictor gst cv none --steps 100
+
+Throughput: `--envs` environments vmapped, `--steps` steps of `CrowdNav.step` (auto-reset
+included) in one `lax.scan` under a fixed action (the velocity towards the goal), predictions
+by CrowdNav++'s randomized-human predictor (`pretrained:crowdnav_sj_rand`, mean mode, 20
+humans, 5 observed and 5 predicted steps), DtACI regions; the best of `--repeats` timed calls
+after a compiling one. Planning: the `SamplingMPC` of 256 plans on one observation of
+20 humans, jitted, median of `--calls`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+from common import print_table, record
+from gst_jax.runs import load_model
+from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams
+from gst_jax.simulate.planner import SamplingMPC
+from gst_jax.stream import Regions
+
+MODEL = "pretrained:crowdnav_sj_rand"
+
+
+def environment(predictor: str) -> tuple[CrowdNav, EnvParams]:
+    regions = Regions("dtaci", 0.1)
+    if predictor == "gst":
+        return CrowdNav.with_predictor(load_model(MODEL), regions=regions)
+    if predictor == "cv":
+        return CrowdNav(model=CONSTANT_VELOCITY, regions=regions), EnvParams()
+    return CrowdNav(), EnvParams()
+
+
+def time_steps(env: CrowdNav, params: EnvParams, envs: int, steps: int, repeats: int) -> dict:
+    def rollout(keys):
+        _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+
+        def step(states, key):
+            action = states.robot_goal - states.robot_position
+            _, states, reward, _, _ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(key, envs), states, action, params)
+            return states, reward.mean()
+
+        return jax.lax.scan(step, states, jax.random.split(keys[0], steps))[1]
+
+    run = jax.jit(rollout)
+    keys = jax.random.split(jax.random.key(0), envs)
+    started = time.perf_counter()
+    jax.block_until_ready(run(keys))
+    compile_s = time.perf_counter() - started
+    seconds = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        jax.block_until_ready(run(keys))
+        seconds.append(time.perf_counter() - started)
+    return {"steps_per_s": envs * steps / min(seconds), "best_s": min(seconds),
+            "compile_s": compile_s}
+
+
+def time_planner(calls: int) -> dict:
+    env, params = environment("gst")
+    obs, _ = jax.jit(env.reset)(jax.random.key(0), params)
+    planner = SamplingMPC()
+    plan = jax.jit(planner.__call__)
+    state = planner.init()
+    seconds = []
+    for call in range(calls + 1):
+        started = time.perf_counter()
+        action, state = plan(jax.random.key(call), state, obs)
+        action.block_until_ready()
+        seconds.append(time.perf_counter() - started)
+    return {"median_ms": 1e3 * statistics.median(seconds[1:]), "compile_s": seconds[0],
+            "plans": planner.num_plans, "humans": env.num_humans}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="*", type=int, default=[64, 256, 1024])
+    parser.add_argument("--predictor", nargs="*", default=["gst"], choices=("gst", "cv", "none"))
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--calls", type=int, default=50)
+    parser.add_argument("--note", default="", help="recorded with the rows (e.g. the load)")
+    args = parser.parse_args()
+    rows = []
+    for predictor in args.predictor:
+        env, params = environment(predictor)
+        for envs in args.envs:
+            result = time_steps(env, params, envs, args.steps, args.repeats)
+            rows.append(record("env", predictor=predictor, envs=envs, steps=args.steps,
+                               note=args.note, **result))
+    print_table(rows, ["predictor", "envs", "steps_per_s", "best_s", "compile_s"])
+    planning = record("mpc", calls=args.calls, note=args.note, **time_planner(args.calls))
+    print_table([planning], ["plans", "humans", "median_ms", "compile_s"])
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,70 @@
+"""Robot navigation in CrowdNav++'s task with GST in the loop: `python -m gst_jax.navigate`.
+
+    python -m gst_jax.navigate evaluate --planner mpc --episodes 500 --gif 3
+
+A planner in `gst_jax.simulate.environment.CrowdNav` (CrowdNav++'s default task) over many
+episodes in one jitted program; CrowdNav++'s and ICP's measures (`simulate/navigation.py`).
+mpc plans against GST's predictions (--model) inflated by conformal radii (--regions),
+cv-mpc against constant-velocity ones. Episodes are seeded from 1000 (CrowdNav++'s test
+offset); the planner's settings were chosen on seed 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from gst_jax import cli
+from gst_jax.runs import load_model
+from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams
+from gst_jax.simulate.navigation import evaluate
+from gst_jax.simulate.planner import SamplingMPC
+from gst_jax.stream import Regions
+
+
+def plan_count(text: str) -> int:
+    if (count := cli.positive_int(text)) < SamplingMPC.fixed_plans:
+        raise argparse.ArgumentTypeError(f"at least {SamplingMPC.fixed_plans} (the planner's "
+                                         f"fixed plans), got {count}")
+    return count
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = cli.parser("gst_jax.navigate", __doc__)
+    evaluate_parser = parser.add_subparsers(dest="command", required=True).add_parser(
+        "evaluate", help="run a planner over test episodes; CrowdNav++'s measures")
+    add = evaluate_parser.add_argument
+    add("--planner", choices=("mpc", "cv-mpc"), default="mpc", help="mpc: against GST's "
+        "predictions; cv-mpc: against constant-velocity ones (default: mpc)")
+    add("--model", default="pretrained:crowdnav_sj_rand", type=cli.model_spec, help="mpc's "
+        "predictor: a work directory or pretrained:NAME (default: CrowdNav++'s own, "
+        "pretrained:crowdnav_sj_rand)")
+    add("--regions", choices=("dtaci", "aci", "none"), default="dtaci", help="conformal "
+        "regions around the predictions (default: dtaci)")
+    add("--alpha", type=cli.positive_float, default=0.1, help="their miscoverage (default 0.1)")
+    add("--episodes", type=cli.positive_int, default=500, help="episodes (default: 500)")
+    add("--plans", type=plan_count, default=256, help="plans scored per step (default: 256)")
+    add("--seed", type=int, default=1000, help="seed of the episodes (default: 1000)")
+    add("--gif", type=cli.count, default=0, metavar="COUNT", help="GIFs of the first episodes")
+    cli.add_output_flags(evaluate_parser, workdir_help="output directory (default: "
+                         "runs/navigate)", workdir_default="runs/navigate")
+    cli.run(navigate, parser, argv)
+
+
+def navigate(args) -> None:
+    regions = None if args.regions == "none" else Regions(args.regions, args.alpha)
+    if args.planner == "mpc":
+        env, params = CrowdNav.with_predictor(load_model(args.model), regions=regions)
+    else:
+        env, params = CrowdNav(model=CONSTANT_VELOCITY, regions=regions), EnvParams()
+    planner = SamplingMPC(num_plans=args.plans, horizon=env.pred_len, step_s=params.step_s)
+    result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir), {
+        "planner": args.planner, "regions": args.regions, "alpha": args.alpha,
+        "model": args.model if args.planner == "mpc" else None}, args.gif)
+    print(json.dumps(result, indent=2) if args.json else "\n".join(
+        f"{key:18s} {value}" for key, value in result.items()))
+
+
+if __name__ == "__main__":
+    main()

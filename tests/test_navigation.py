@@ -1,0 +1,65 @@
+"""Planners in CrowdNav++'s task (gst_jax.simulate.planner, navigation; python -m
+gst_jax.navigate): the MPC's choice on a crafted observation, the measures on crafted
+episodes, and the command end to end on a few episodes."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gst_jax import navigate
+from gst_jax.simulate.environment import REACH_GOAL, COLLISION, EnvParams, Observation
+from gst_jax.simulate.navigation import max_steps, navigation_measures
+from gst_jax.simulate.planner import SamplingMPC
+
+
+def _observation(humans, radii=0.0):
+    """The robot at the origin heading for (0, 8); humans (H, 1 + P, 2) relative rows."""
+    humans = np.asarray(humans, np.float32)
+    return Observation(
+        robot_node=jnp.array([0.0, 0.0, 0.3, 0.0, 8.0, 1.0, np.pi / 2]),
+        temporal_edges=jnp.zeros(2), spatial_edges=jnp.asarray(humans.reshape(len(humans), -1)),
+        visible_masks=jnp.ones(len(humans), bool),
+        detected_human_num=jnp.asarray(float(len(humans))),
+        radii=jnp.full((len(humans), humans.shape[1] - 1), radii))
+
+
+def test_the_mpc_heads_for_the_goal_and_around_a_predicted_human():
+    planner = SamplingMPC()
+    far = np.tile([[15.0, 15.0]], (6, 1))
+    action, _ = planner(jax.random.key(0), planner.init(), _observation([far]))
+    np.testing.assert_allclose(action, [0.0, 1.0], atol=1e-5)      # straight, full speed
+    # A human standing 1 m ahead: the plan must keep 0.8 m (+ the radius) from it.
+    ahead = np.tile([[0.0, 1.0]], (6, 1))
+    for radius in (0.0, 0.3):
+        action, state = planner(jax.random.key(0), planner.init(), _observation([ahead], radius))
+        path = np.cumsum(np.asarray(state.plan), axis=0) * 0.25
+        assert np.all(np.linalg.norm(path - [0.0, 1.0], axis=-1) >= 0.8 + radius - 1e-5)
+
+
+def test_measures_of_crafted_episodes():
+    steps = 5
+    robot = np.zeros((2, steps + 1, 2))
+    robot[0, :, 1] = np.arange(steps + 1) * 0.25                     # walks 1 m in 4 steps
+    robot[0, 5] = robot[0, 4]
+    humans = np.full((2, steps + 1, 1, 2), 50.0)
+    humans[1, 3, 0] = [0.1, 0.0]                                      # near episode 1's robot
+    episodes = {"robot": robot, "humans": humans, "outcome": np.array([REACH_GOAL, COLLISION]),
+                "steps": np.array([4, 3]), "radii_mean": np.array([0.1, 0.3])}
+    measures = navigation_measures(episodes, EnvParams())
+    assert measures["success"] == 0.5 and measures["collision"] == 0.5
+    assert measures["navigation_time_s"] == 1.0 and measures["path_length_m"] == 1.0
+    # Episode 1: steps 0, 1, 2 see the human of step 3 within 5 steps: 3 of 3 steps.
+    assert measures["intrusion_ratio"] == 0.5 * (0 + 3 / 3)
+    assert max_steps(EnvParams()) == 197                              # CrowdNav++'s timeout
+
+
+def test_the_command_reports_crowdnavs_measures(tmp_path, capsys):
+    navigate.main(["evaluate", "--planner", "cv-mpc", "--episodes", "2", "--plans", "66",
+                   "--gif", "1", "--workdir", str(tmp_path), "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert result["episodes"] == 2
+    assert result["success"] + result["collision"] + result["timeout"] == 1.0
+    assert result == json.loads((tmp_path / "cv-mpc-dtaci-seed1000.json").read_text())
+    assert (tmp_path / "cv-mpc-dtaci-seed1000-episode0.gif").stat().st_size > 1000
