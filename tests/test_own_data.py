@@ -18,6 +18,7 @@ from gst_jax.errors import DataError, RunError
 from gst_jax.evaluation import evaluate_run
 from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_model, load_run
+from gst_jax.train import format_fine_tuning
 from gst_jax.training.loop import fit
 from gst_jax.training.state import hparams_for_epoch, step_key
 from gst_jax.training.step import make_train_step
@@ -136,9 +137,13 @@ def test_fine_tuning_selects_its_epoch_on_validation_and_reports_beside_the_star
     assert [r["tau"] for r in records] == pytest.approx([0.03, 0.03])
     report = summary["fine_tuning"]
     kept = report["selected_epoch"]
-    assert kept == records[-1]["selected_epoch"] and kept in (0, 1, 2)
-    if kept:
-        assert report["val_aoe"] == min(r["val_aoe"] for r in records)
+    assert kept == records[-1]["selected_epoch"] == 0
+    assert all(r["val_aoe"] >= report["val_aoe"] for r in records)
+    # What docs/own-data.md's recipe (10 epochs, an excerpt) prints: no epoch improves on
+    # this sample, so the first two do not either.
+    assert format_fine_tuning(report).splitlines()[0] == (
+        "kept the starting model (pretrained:hotel_d): no epoch improved on validation AOE "
+        "(0.226 m, 3 windows)")
     run = load_model(str(workdir))
     assert run.epoch == kept
     data_config = DataConfig.from_dict(config["data"])
