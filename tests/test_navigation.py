@@ -7,6 +7,7 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from gst_jax import navigate
 from gst_jax.simulate.environment import REACH_GOAL, COLLISION, EnvParams, Observation
@@ -49,7 +50,8 @@ def test_measures_of_crafted_episodes():
                 "steps": np.array([4, 3]), "radii_mean": np.array([0.1, 0.3])}
     measures = navigation_measures(episodes, EnvParams())
     assert measures["success"] == 0.5 and measures["collision"] == 0.5
-    assert measures["navigation_time_s"] == 1.0 and measures["path_length_m"] == 1.0
+    assert measures["navigation_time_s"] == 1.0                      # over the successes
+    assert measures["path_length_m"] == 0.5                          # over all episodes
     # Episode 1: steps 0, 1, 2 see the human of step 3 within 5 steps: 3 of 3 steps.
     assert measures["intrusion_ratio"] == 0.5 * (0 + 3 / 3)
     assert max_steps(EnvParams()) == 197                              # CrowdNav++'s timeout
@@ -63,3 +65,33 @@ def test_the_command_reports_crowdnavs_measures(tmp_path, capsys):
     assert result["success"] + result["collision"] + result["timeout"] == 1.0
     assert result == json.loads((tmp_path / "cv-mpc-dtaci-seed1000.json").read_text())
     assert (tmp_path / "cv-mpc-dtaci-seed1000-episode0.gif").stat().st_size > 1000
+
+
+def test_a_ppo_from_rejax_trains_in_the_environment():
+    # Only where the rl extra is installed (pip install ".[rl]"); CI installs the test extra.
+    pytest.importorskip("rejax")
+    import ppo_rejax
+
+    algo, state, _ = ppo_rejax.train("none", humans=2, timesteps=1024, envs=8, steps=32)
+    assert int(state.global_step) == 1024
+    leaves = jax.tree.leaves(state.actor_ts.params)
+    assert all(np.all(np.isfinite(np.asarray(leaf))) for leaf in leaves)
+    measures = ppo_rejax.measure(algo, state, 2)
+    assert measures["success"] + measures["collision"] + measures["timeout"] == 1.0
+
+
+def test_the_experiment_tabulates_its_records_without_running_them_again(tmp_path, monkeypatch):
+    import navigation as experiment
+
+    for planner, regions in experiment.CONFIGURATIONS:
+        record = {"planner": planner, "regions": regions, "success": 0.9, "collision": 0.1,
+                  "timeout": 0.0, "navigation_time_s": 14.0 if regions == "none" else 15.0,
+                  "path_length_m": 12.0, "intrusion_ratio": 0.2 if regions == "none" else 0.1,
+                  "mean_radius_m": 0.2}
+        (tmp_path / f"{planner}-{regions}-seed1000.json").write_text(json.dumps(record))
+    monkeypatch.setattr("sys.argv", ["navigation.py", "--workdir", str(tmp_path)])
+    experiment.main()
+    text = (tmp_path / "navigation.md").read_text()
+    assert "| sampling MPC | constant velocity | none | 0.900 | 0.100 |" in text
+    assert "change the intrusion ratio by -50 % and the navigation time by +1.0 s" in text
+    assert len(json.loads((tmp_path / "navigation.json").read_text())) == 6

@@ -87,7 +87,8 @@ def animate_navigation(robot: np.ndarray, humans: np.ndarray, goal: np.ndarray, 
                        path: Path, title: str, step_s: float = 0.25) -> Path:
     """Animated GIF of a CrowdNav episode (`navigation.run_episodes`' arrays of one episode:
     robot (S+1, 2), humans (S+1, H, 2)) up to its last step, at 2x real time: the robot's
-    trail and disc in red, the humans' discs in blue, the sensor's 5 m in grey."""
+    trail and disc in red, the humans in blue (discs of their mean radius, 0.4 m), the
+    sensor's reach (5 m beyond the robot's surface) in grey."""
     robot, humans = robot[:steps + 1], humans[:steps + 1]
     fig, ax = plt.subplots(figsize=(4.2, 4.2))
     ax.set_xlim(-10, 10)
@@ -99,7 +100,7 @@ def animate_navigation(robot: np.ndarray, humans: np.ndarray, goal: np.ndarray, 
     trail = ax.plot([], [], "-", color="tab:red", lw=1.0)[0]
     body = plt.Circle(robot[0], 0.3, color="tab:red")
     sensor = plt.Circle(robot[0], 5.3, color="0.6", fill=False, lw=0.6, ls="--")
-    people = [plt.Circle(xy, 0.35, color="tab:blue", alpha=0.7) for xy in humans[0]]
+    people = [plt.Circle(xy, 0.4, color="tab:blue", alpha=0.7) for xy in humans[0]]
     for patch in [body, sensor, *people]:
         ax.add_patch(patch)
 

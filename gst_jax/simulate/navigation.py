@@ -3,8 +3,8 @@ what CrowdNav++ and ICP report of them.
 
 Each episode runs `environment.CrowdNav.step_env` under a planner until it ends (arrival,
 collision, or the timeout after 49 s: at most 197 steps) and then stands still. Measures,
-as CrowdNav++'s test script reports them (`test.py`, `evaluation.py`): success, collision
-and timeout rates; navigation time and path length over the successful episodes; the
+as CrowdNav++'s test script reports them (`rl/evaluation.py`): success, collision and
+timeout rates; navigation time over the successful episodes, path length over all; the
 intrusion ratio, the fraction of an episode's steps in which a human's actual position over
 the next 5 steps comes within 0.6 m (robot + human radius) of the robot (CrowdNav++ rolls
 ORCA forward for this; here the humans' recorded positions are those futures, which they
@@ -104,7 +104,7 @@ def navigation_measures(episodes: dict, params: EnvParams, intrusion_steps: int 
     return {"episodes": int(len(outcome)), "success": rate(success),
             "collision": rate(outcome == COLLISION), "timeout": rate(outcome == TIMEOUT),
             "navigation_time_s": over_success(steps * params.step_s),
-            "path_length_m": over_success(path),
+            "path_length_m": float(path.mean()),
             "intrusion_ratio": float(intrusion.mean()),
             "mean_radius_m": float(np.nanmean(episodes["radii_mean"]))}
 
