@@ -30,12 +30,15 @@ The task is CrowdNav++'s default (Shuijing725/CrowdNav_Prediction_AttnGraph, com
   detected (at least 1).
 
 Predictions come from `gst_jax.stream.predict_slots` over each human's last obs_len detected
-positions (CrowdNav++'s 5), for the humans detected at both of the last two steps; without a
-model the observation carries the current positions only (CrowdNav++'s no-prediction task).
+positions (CrowdNav++'s 5), or repeat each human's last displacement (CONSTANT_VELOCITY), for
+the humans detected at both of the last two steps; without a model the observation carries
+the current positions only (CrowdNav++'s no-prediction task). With `regions`, each predicted
+step also gets a conformal radius (`gst_jax.stream.Regions`), scored as the humans move on.
 
 Where this differs from CrowdNav++, on purpose: rejection sampling of starts and goals takes
-the first acceptable of a fixed number of draws (CrowdNav++ draws until one is); a new episode starts with
-empty histories (CrowdNav++ keeps the last episode's in its predictor's buffer); the
+the first acceptable of a fixed number of draws (CrowdNav++ draws until one is); a new
+episode starts with empty histories (CrowdNav++ keeps the last episode's in its predictor's
+buffer); the
 prediction penalty of an episode's last step is computed on that episode (CrowdNav++ computes
 it on the next episode's first observation); each human's ORCA sees every other human's
 current radius (CrowdNav++'s reused simulators keep a replaced human's old one).
