@@ -90,7 +90,7 @@ def animate_navigation(robot: np.ndarray, humans: np.ndarray, goal: np.ndarray, 
     trail and disc in red, the humans in blue (discs of their mean radius, 0.4 m), the
     sensor's reach (5 m beyond the robot's surface) in grey."""
     robot, humans = robot[:steps + 1], humans[:steps + 1]
-    fig, ax = plt.subplots(figsize=(4.2, 4.2))
+    fig, ax = plt.subplots(figsize=(3.6, 3.6))
     ax.set_xlim(-10, 10)
     ax.set_ylim(-10, 10)
     ax.set_aspect("equal")
@@ -100,7 +100,7 @@ def animate_navigation(robot: np.ndarray, humans: np.ndarray, goal: np.ndarray, 
     trail = ax.plot([], [], "-", color="tab:red", lw=1.0)[0]
     body = plt.Circle(robot[0], 0.3, color="tab:red")
     sensor = plt.Circle(robot[0], 5.3, color="0.6", fill=False, lw=0.6, ls="--")
-    people = [plt.Circle(xy, 0.4, color="tab:blue", alpha=0.7) for xy in humans[0]]
+    people = [plt.Circle(xy, 0.4, color="tab:blue") for xy in humans[0]]
     for patch in [body, sensor, *people]:
         ax.add_patch(patch)
 
@@ -113,6 +113,6 @@ def animate_navigation(robot: np.ndarray, humans: np.ndarray, goal: np.ndarray, 
 
     path.parent.mkdir(parents=True, exist_ok=True)
     FuncAnimation(fig, draw, frames=len(robot), blit=True).save(
-        path, writer=PillowWriter(fps=2 / step_s), dpi=80)
+        path, writer=PillowWriter(fps=2 / step_s), dpi=64)
     plt.close(fig)
     return path
