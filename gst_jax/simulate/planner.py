@@ -14,9 +14,9 @@ Every step it scores `num_plans` velocity sequences over the prediction horizon,
 
 The planner reads only the observation (`environment.Observation`), so the same planner
 runs on GST's predictions with their regions, or on constant-velocity ones
-(`CrowdNav(model=CONSTANT_VELOCITY)`). The humans' predictions do not react to a plan: the
-robot is not an agent of GST's graph here (letting it be one would run GST once per plan,
-num_plans model calls per step instead of one).
+(`CrowdNav(model=CONSTANT_VELOCITY)`). The humans' predictions do not react to a plan: GST
+reads observed steps only, so a plan cannot enter it (ICP trains a predictor that reads the
+robot's plan; that would be num_plans model calls per step instead of one).
 """
 
 from __future__ import annotations
