@@ -96,8 +96,7 @@ class SamplingMPC:
         robot, goal = obs.robot_node[:2], obs.robot_node[3:5]
         relative = obs.spatial_edges.reshape(obs.spatial_edges.shape[0], -1, 2)  # (H, 1+P, 2)
         humans = robot + relative[:, 1:]
-        present = jnp.arange(relative.shape[0]) < obs.detected_human_num
-        present = present & (relative[:, 0, 0] != UNDETECTED)
+        present = relative[:, 0, 0] != UNDETECTED          # rows of undetected humans: 15
         plans = self.plans(key, goal - robot, state.plan)
         costs = jax.vmap(self.cost, in_axes=(0, None, None, None, None, None))(
             plans, robot, goal, humans, obs.radii, present)
