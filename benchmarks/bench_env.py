@@ -31,12 +31,9 @@ MODEL = "pretrained:crowdnav_sj_rand"
 
 
 def environment(predictor: str) -> tuple[CrowdNav, EnvParams]:
-    regions = Regions("dtaci", 0.1)
-    if predictor == "gst":
-        return CrowdNav.with_predictor(load_model(MODEL), regions=regions)
-    if predictor == "cv":
-        return CrowdNav(model=CONSTANT_VELOCITY, regions=regions), EnvParams()
-    return CrowdNav(), EnvParams()
+    model = {"gst": lambda: load_model(MODEL), "cv": lambda: CONSTANT_VELOCITY,
+             "none": lambda: None}[predictor]()
+    return CrowdNav.with_predictor(model, regions=Regions("dtaci", 0.1) if model else None)
 
 
 def time_steps(env: CrowdNav, params: EnvParams, envs: int, steps: int, repeats: int) -> dict:

@@ -20,7 +20,7 @@ import math
 from _common import add_results_flags, results_folder
 
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams
+from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav
 from gst_jax.simulate.navigation import evaluate
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
@@ -45,10 +45,8 @@ def run(planner: str, regions: str, episodes: int, seed: int, out) -> dict:
     if found.exists():
         return json.loads(found.read_text())
     discs = None if regions == "none" else Regions(regions, 0.1)
-    if planner == "mpc":
-        env, params = CrowdNav.with_predictor(load_model(MODEL), regions=discs)
-    else:
-        env, params = CrowdNav(model=CONSTANT_VELOCITY, regions=discs), EnvParams()
+    predictor = load_model(MODEL) if planner == "mpc" else CONSTANT_VELOCITY
+    env, params = CrowdNav.with_predictor(predictor, regions=discs)
     mpc = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
     return evaluate(env, params, mpc, episodes, seed, out, {
         "planner": planner, "regions": regions, "alpha": 0.1,

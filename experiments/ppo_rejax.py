@@ -70,13 +70,9 @@ class FlatCrowdNav:
 
 
 def environment(predictor: str, humans: int) -> tuple[CrowdNav, EnvParams]:
-    regions = Regions("dtaci", 0.1)
-    if predictor == "gst":
-        return CrowdNav.with_predictor(load_model("pretrained:crowdnav_sj_rand"), humans,
-                                       regions)
-    if predictor == "cv":
-        return CrowdNav(humans, CONSTANT_VELOCITY, regions=regions), EnvParams()
-    return CrowdNav(humans), EnvParams()
+    model = {"gst": lambda: load_model("pretrained:crowdnav_sj_rand"),
+             "cv": lambda: CONSTANT_VELOCITY, "none": lambda: None}[predictor]()
+    return CrowdNav.with_predictor(model, humans, Regions("dtaci", 0.1) if model else None)
 
 
 def train(predictor: str = "gst", humans: int = 20, timesteps: int = 100_000, envs: int = 64,

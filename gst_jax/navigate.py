@@ -17,7 +17,7 @@ from pathlib import Path
 
 from gst_jax import cli
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams
+from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav
 from gst_jax.simulate.navigation import evaluate
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
@@ -54,10 +54,8 @@ def main(argv: list[str] | None = None) -> None:
 
 def navigate(args) -> None:
     regions = None if args.regions == "none" else Regions(args.regions, args.alpha)
-    if args.planner == "mpc":
-        env, params = CrowdNav.with_predictor(load_model(args.model), regions=regions)
-    else:
-        env, params = CrowdNav(model=CONSTANT_VELOCITY, regions=regions), EnvParams()
+    predictor = load_model(args.model) if args.planner == "mpc" else CONSTANT_VELOCITY
+    env, params = CrowdNav.with_predictor(predictor, regions=regions)
     planner = SamplingMPC(num_plans=args.plans, horizon=env.pred_len, step_s=params.step_s)
     result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir), {
         "planner": args.planner, "regions": args.regions, "alpha": args.alpha,

@@ -159,11 +159,14 @@ class CrowdNav:
     regions: Regions | None = None
 
     @classmethod
-    def with_predictor(cls, run, num_humans: int = 20, regions: Regions | None = None
+    def with_predictor(cls, predictor, num_humans: int = 20, regions: Regions | None = None
                        ) -> tuple["CrowdNav", EnvParams]:
-        """The environment and its params with a loaded model (`gst_jax.runs.load_model`)
-        predicting in mean mode, as CrowdNav++'s predictor does."""
-        config = run.model_config
+        """The environment and its params, predictions by `predictor`: a loaded model
+        (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor), CONSTANT_VELOCITY
+        or None."""
+        if predictor is None or isinstance(predictor, str):
+            return cls(num_humans, predictor, regions=regions), EnvParams()
+        run, config = predictor, predictor.model_config
         return (cls(num_humans, StreamModel(config), config.obs_len, config.pred_len, regions),
                 EnvParams(predictor=run.params))
 
@@ -255,12 +258,12 @@ class CrowdNav:
         visible = tracks.detected[:, -1] > 0
         predicted = (tracks.detected[:, -2:] > 0).all(axis=-1)
         now = state.human_position
-        steps = jnp.arange(1, self.pred_len + 1)[:, None]
         if self.model is None:
             futures = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
             predicted = jnp.zeros_like(predicted)
         elif self.model == CONSTANT_VELOCITY:
             last = tracks.positions[:, -1] - tracks.positions[:, -2]
+            steps = jnp.arange(1, self.pred_len + 1)[:, None]
             futures = now[:, None] + steps * last[:, None]
         else:
             predict_key, key = jax.random.split(key)
