@@ -8,7 +8,8 @@ Throughput: `--envs` environments vmapped, `--steps` steps of `CrowdNav.step` (a
 included) in one `lax.scan` under a fixed action (the velocity towards the goal), predictions
 by CrowdNav++'s randomized-human predictor (`pretrained:crowdnav_sj_rand`, mean mode, 20
 humans, 5 observed and 5 predicted steps), DtACI regions; the best of `--repeats` timed calls
-after a compiling one. Planning: the `SamplingMPC` of 256 plans on one observation of
+after a compiling one. Beside it, two parts of a step timed alone on the states of 40 steps
+in (best of 5 calls): the humans' ORCA and the predictor's forward pass. Planning: the `SamplingMPC` of 256 plans on one observation of
 20 humans, jitted, median of `--calls`.
 """
 
@@ -25,7 +26,7 @@ from common import print_table, record
 from gst_jax.runs import load_model
 from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams
 from gst_jax.simulate.planner import SamplingMPC
-from gst_jax.stream import Regions
+from gst_jax.stream import Regions, StreamModel, predict_slots
 
 MODEL = "pretrained:crowdnav_sj_rand"
 
@@ -62,6 +63,31 @@ def time_steps(env: CrowdNav, params: EnvParams, envs: int, steps: int, repeats:
             "compile_s": compile_s}
 
 
+def time_parts(env: CrowdNav, params: EnvParams, envs: int) -> dict:
+    keys = jax.random.split(jax.random.key(0), envs)
+    _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+    for t in range(40):
+        _, states, *_ = step(jax.random.split(jax.random.key(t), envs), states,
+                             states.robot_goal - states.robot_position, params)
+    parts = {"orca_ms": jax.vmap(lambda state: env.human_velocities(state, params))}
+    if isinstance(env.model, StreamModel):
+        parts["predictor_ms"] = jax.vmap(
+            lambda key, state: predict_slots(env.model, params.predictor, key, state.tracks))
+    timed = {}
+    for name, part in parts.items():
+        part = jax.jit(part)
+        inputs = (states,) if name == "orca_ms" else (keys, states)
+        jax.block_until_ready(part(*inputs))
+        seconds = []
+        for _ in range(5):
+            started = time.perf_counter()
+            jax.block_until_ready(part(*inputs))
+            seconds.append(time.perf_counter() - started)
+        timed[name] = 1e3 * min(seconds)
+    return timed
+
+
 def time_planner(calls: int) -> dict:
     env, params = environment("gst")
     obs, _ = jax.jit(env.reset)(jax.random.key(0), params)
@@ -92,9 +118,11 @@ def main() -> None:
         env, params = environment(predictor)
         for envs in args.envs:
             result = time_steps(env, params, envs, args.steps, args.repeats)
+            result |= time_parts(env, params, envs)
             rows.append(record("env", predictor=predictor, envs=envs, steps=args.steps,
                                note=args.note, **result))
-    print_table(rows, ["predictor", "envs", "steps_per_s", "best_s", "compile_s"])
+    print_table(rows, ["predictor", "envs", "steps_per_s", "best_s", "compile_s", "orca_ms",
+                       "predictor_ms"])
     planning = record("mpc", calls=args.calls, note=args.note, **time_planner(args.calls))
     print_table([planning], ["plans", "humans", "median_ms", "compile_s"])
 

@@ -193,7 +193,7 @@ class CrowdNav:
         # Humans are placed one after another, each clear of those before it.
         state = _respawn(humans_key, state, params, jnp.ones(self.num_humans, bool))
         state = _observed(state, params)
-        obs, state, _, _ = self._observation(predict_key, state, params)
+        obs, state, _, _ = self._observation(predict_key, state, params, fresh=True)
         return obs, state
 
     def step(self, key: jax.Array, state: EnvState, action: jax.Array, params: EnvParams
@@ -249,16 +249,20 @@ class CrowdNav:
                                state.human_v_pref, preferred,
                                jnp.ones(self.num_humans, bool), orca, params.step_s)
 
-    def _observation(self, key: jax.Array, state: EnvState, params: EnvParams
-                     ) -> tuple[Observation, EnvState, jax.Array, jax.Array]:
+    def _observation(self, key: jax.Array, state: EnvState, params: EnvParams,
+                     fresh: bool = False) -> tuple[Observation, EnvState, jax.Array, jax.Array]:
         """The observation, the state with the regions updated, the predicted positions
         (H, P, 2) (where a human stands, for those not predicted) and which humans have them
-        (H,): those detected at both of the last two steps."""
+        (H,): those detected at both of the last two steps, so none on an episode's `fresh`
+        first step (the predictor is not called then: gymnax's auto-reset makes a first
+        step at every step)."""
         tracks = state.tracks
         visible = tracks.detected[:, -1] > 0
         predicted = (tracks.detected[:, -2:] > 0).all(axis=-1)
         now = state.human_position
-        if self.model is None:
+        if isinstance(self.model, StreamModel):
+            predict_key, key = jax.random.split(key)
+        if self.model is None or fresh:
             futures = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
             predicted = jnp.zeros_like(predicted)
         elif self.model == CONSTANT_VELOCITY:
@@ -266,7 +270,6 @@ class CrowdNav:
             steps = jnp.arange(1, self.pred_len + 1)[:, None]
             futures = now[:, None] + steps * last[:, None]
         else:
-            predict_key, key = jax.random.split(key)
             slots, _ = predict_slots(self.model, params.predictor, predict_key, tracks)
             futures = jnp.swapaxes(slots[0], 0, 1)                              # (H, P, 2)
         futures = jnp.where(predicted[:, None, None], futures, now[:, None])
