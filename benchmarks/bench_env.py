@@ -8,9 +8,10 @@ Throughput: `--envs` environments vmapped, `--steps` steps of `CrowdNav.step` (a
 included) in one `lax.scan` under a fixed action (the velocity towards the goal), predictions
 by CrowdNav++'s randomized-human predictor (`pretrained:crowdnav_sj_rand`, mean mode, 20
 humans, 5 observed and 5 predicted steps), DtACI regions; the best of `--repeats` timed calls
-after a compiling one. Beside it, two parts of a step timed alone on the states of 40 steps
-in (best of 5 calls): the humans' ORCA and the predictor's forward pass. Planning: the `SamplingMPC` of 256 plans on one observation of
-20 humans, jitted, median of `--calls`.
+after a compiling one; the humans walk by ORCA or (`--humans social_force`) social force.
+Beside it, two parts of a step timed alone on the states of 40 steps in (best of 5 calls):
+the humans' new velocities and the predictor's forward pass. Planning: the `SamplingMPC` of
+256 plans on one observation of 20 humans, jitted, median of `--calls`.
 """
 
 from __future__ import annotations
@@ -24,17 +25,19 @@ import jax.numpy as jnp
 
 from common import print_table, record
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams
+from gst_jax.simulate.environment import (CONSTANT_VELOCITY, ORCA, SOCIAL_FORCE, CrowdNav,
+                                          EnvParams)
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions, StreamModel, predict_slots
 
 MODEL = "pretrained:crowdnav_sj_rand"
 
 
-def environment(predictor: str) -> tuple[CrowdNav, EnvParams]:
+def environment(predictor: str, humans: str = ORCA) -> tuple[CrowdNav, EnvParams]:
     model = {"gst": lambda: load_model(MODEL), "cv": lambda: CONSTANT_VELOCITY,
              "none": lambda: None}[predictor]()
-    return CrowdNav.with_predictor(model, regions=Regions("dtaci", 0.1) if model else None)
+    return CrowdNav.with_predictor(model, regions=Regions("dtaci", 0.1) if model else None,
+                                   human_policy=humans)
 
 
 def time_steps(env: CrowdNav, params: EnvParams, envs: int, steps: int, repeats: int) -> dict:
@@ -70,14 +73,14 @@ def time_parts(env: CrowdNav, params: EnvParams, envs: int) -> dict:
     for t in range(40):
         _, states, *_ = step(jax.random.split(jax.random.key(t), envs), states,
                              states.robot_goal - states.robot_position, params)
-    parts = {"orca_ms": jax.vmap(lambda state: env.human_velocities(state, params))}
+    parts = {"humans_ms": jax.vmap(lambda state: env.human_velocities(state, params))}
     if isinstance(env.model, StreamModel):
         parts["predictor_ms"] = jax.vmap(
             lambda key, state: predict_slots(env.model, params.predictor, key, state.tracks))
     timed = {}
     for name, part in parts.items():
         part = jax.jit(part)
-        inputs = (states,) if name == "orca_ms" else (keys, states)
+        inputs = (states,) if name == "humans_ms" else (keys, states)
         jax.block_until_ready(part(*inputs))
         seconds = []
         for _ in range(5):
@@ -108,21 +111,24 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="*", type=int, default=[64, 256, 1024])
     parser.add_argument("--predictor", nargs="*", default=["gst"], choices=("gst", "cv", "none"))
+    parser.add_argument("--humans", nargs="*", default=[ORCA], choices=(ORCA, SOCIAL_FORCE),
+                        help="how the humans walk (default: orca)")
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--calls", type=int, default=50)
     parser.add_argument("--note", default="", help="recorded with the rows (e.g. the load)")
     args = parser.parse_args()
     rows = []
-    for predictor in args.predictor:
-        env, params = environment(predictor)
-        for envs in args.envs:
-            result = time_steps(env, params, envs, args.steps, args.repeats)
-            result |= time_parts(env, params, envs)
-            rows.append(record("env", predictor=predictor, envs=envs, steps=args.steps,
-                               note=args.note, **result))
-    print_table(rows, ["predictor", "envs", "steps_per_s", "best_s", "compile_s", "orca_ms",
-                       "predictor_ms"])
+    for humans in args.humans:
+        for predictor in args.predictor:
+            env, params = environment(predictor, humans)
+            for envs in args.envs:
+                result = time_steps(env, params, envs, args.steps, args.repeats)
+                result |= time_parts(env, params, envs)
+                rows.append(record("env", humans=humans, predictor=predictor, envs=envs,
+                                   steps=args.steps, note=args.note, **result))
+    print_table(rows, ["humans", "predictor", "envs", "steps_per_s", "best_s", "compile_s",
+                       "humans_ms", "predictor_ms"])
     planning = record("mpc", calls=args.calls, note=args.note, **time_planner(args.calls))
     print_table([planning], ["plans", "humans", "median_ms", "compile_s"])
 

@@ -1,12 +1,14 @@
 """Does planning against GST's calibrated predictions help a robot in CrowdNav++'s task?
 (issue 60): the sampling MPC against GST's predictions and against constant velocity, each
-with DtACI discs and without, over the same 500 test episodes (seed 1000 on).
+with DtACI discs and without, over the same 500 test episodes (seed 1000 on); and both with
+DtACI discs among CrowdNav++'s social-force humans instead of its ORCA ones.
 
     python experiments/navigation.py                 # runs/navigation/
     python experiments/navigation.py --publish       # results/navigation.{md,json}
 
 Each configuration is `python -m gst_jax.navigate evaluate --planner P --regions R
---episodes 500` (`gst_jax.simulate.navigation.evaluate`); one whose record is already in the
+[--humans social-force] --episodes 500` (`gst_jax.simulate.navigation.evaluate`); one whose
+record is already in the
 output folder is not run again. Beside them, CrowdNav++'s own released test logs (its RL
 policy with GST, 500 episodes each), whose setting differs (below the table).
 """
@@ -25,7 +27,9 @@ from gst_jax.simulate.navigation import evaluate
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
 
-CONFIGURATIONS = [("mpc", "dtaci"), ("mpc", "none"), ("cv-mpc", "dtaci"), ("cv-mpc", "none")]
+CONFIGURATIONS = [("mpc", "dtaci", "orca"), ("mpc", "none", "orca"), ("cv-mpc", "dtaci", "orca"),
+                  ("cv-mpc", "none", "orca"), ("mpc", "dtaci", "social-force"),
+                  ("cv-mpc", "dtaci", "social-force")]
 MODEL = "pretrained:crowdnav_sj_rand"
 COLUMNS = ["success", "collision", "timeout", "navigation_time_s", "path_length_m",
            "intrusion_ratio", "mean_radius_m"]
@@ -40,22 +44,23 @@ CROWDNAV = [
 ]
 
 
-def run(planner: str, regions: str, episodes: int, seed: int, out) -> dict:
-    found = out / f"{planner}-{regions}-seed{seed}.json"
-    if found.exists():
-        return json.loads(found.read_text())
+def run(planner: str, regions: str, humans: str, episodes: int, seed: int, out) -> dict:
+    name = "-".join([planner, regions, *([humans] if humans != "orca" else []), f"seed{seed}"])
+    if (out / f"{name}.json").exists():
+        return json.loads((out / f"{name}.json").read_text())
     discs = None if regions == "none" else Regions(regions, 0.1)
     predictor = load_model(MODEL) if planner == "mpc" else CONSTANT_VELOCITY
-    env, params = CrowdNav.with_predictor(predictor, regions=discs)
+    env, params = CrowdNav.with_predictor(predictor, regions=discs,
+                                          human_policy=humans.replace("-", "_"))
     mpc = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
     return evaluate(env, params, mpc, episodes, seed, out, {
-        "planner": planner, "regions": regions, "alpha": 0.1,
+        "planner": planner, "regions": regions, "alpha": 0.1, "humans": humans,
         "model": MODEL if planner == "mpc" else None})
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| planner | predictions | discs | " + " | ".join(COLUMNS) + " |",
-             "|---" * (3 + len(COLUMNS)) + "|"]
+    lines = ["| planner | predictions | discs | humans | " + " | ".join(COLUMNS) + " |",
+             "|---" * (4 + len(COLUMNS)) + "|"]
     for row in rows:
         cells = [f"{row[c]:.3f}" if isinstance(row.get(c), float) else "" for c in COLUMNS]
         lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
@@ -63,7 +68,8 @@ def table(rows: list[dict]) -> str:
 
 
 def reading(rows: list[dict], episodes: int) -> str:
-    """What the rows say about success and intrusion, with the binomial 95 % half-width."""
+    """What the rows (the four planners among ORCA humans) say about success and
+    intrusion, with the binomial 95 % half-width."""
     success = [row["success"] for row in rows]
     mean = sum(success) / len(success)
     half = 1.96 * math.sqrt(mean * (1 - mean) / episodes)
@@ -81,6 +87,17 @@ def reading(rows: list[dict], episodes: int) -> str:
             f"navigation time by {slower:+.1f} s (means over both predictors).")
 
 
+def among_social_force(rows: list[dict], episodes: int) -> str:
+    """GST against constant velocity among social-force humans, as `reading` does."""
+    success = [row["success"] for row in rows]
+    mean = sum(success) / len(success)
+    half = 1.96 * math.sqrt(mean * (1 - mean) / episodes)
+    spread = max(success) - min(success)
+    return (f"Among social-force humans the two planners' success rates ({min(success):.3f}, "
+            f"{max(success):.3f}) span {spread:.3f}, {'within' if spread <= half else 'beyond'} "
+            f"their half-width of {half:.3f}.")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=int, default=500)
@@ -92,22 +109,28 @@ def main() -> None:
     runs = out / "runs" / "navigation" if args.publish else out
     runs.mkdir(parents=True, exist_ok=True)
     rows = []
-    for planner, regions in CONFIGURATIONS:
-        row = run(planner, regions, args.episodes, args.seed, runs)
+    for planner, regions, humans in CONFIGURATIONS:
+        row = run(planner, regions, humans, args.episodes, args.seed, runs)
         predictions = "GST (crowdnav_sj_rand)" if planner == "mpc" else "constant velocity"
-        rows.append({**row, "label": f"sampling MPC | {predictions} | "
-                                     f"{'DtACI 0.1' if regions != 'none' else 'none'}"})
-    published = rows + [{"label": f"{name} | | ", **figures} for name, figures in CROWDNAV]
+        rows.append({**row, "humans": humans,
+                     "label": f"sampling MPC | {predictions} | "
+                              f"{'DtACI 0.1' if regions != 'none' else 'none'} | "
+                              f"{'ORCA' if humans == 'orca' else 'social force'}"})
+    published = rows + [{"label": f"{name} | | | ORCA", **figures}
+                        for name, figures in CROWDNAV]
     text = "\n".join([
         "# Planning against GST's calibrated predictions in CrowdNav++'s task", "",
         f"Made by `python experiments/navigation.py --publish`: {args.episodes} test episodes "
         f"(seed {args.seed} on, the same for every row) of `gst_jax.simulate.environment."
         "CrowdNav` (CrowdNav++'s default task: 20 ORCA humans who ignore the robot, 0.25 s "
-        "steps, 50 s), docs/navigation.md. Navigation time over the successful episodes, path "
+        "steps, 50 s; in the rows marked so, its social-force humans instead), "
+        "docs/navigation.md. Navigation time over the successful episodes, path "
         "length over all, intrusion ratio: the share of an episode's steps in which a human's "
         "next 5 positions come within 0.6 m of the robot; mean radius: of the discs the "
         "planner was given.", "", table(published), "",
-        reading(rows, args.episodes), "",
+        reading([row for row in rows if row["humans"] == "orca"], args.episodes) + " "
+        + among_social_force([row for row in rows if row["humans"] != "orca"], args.episodes),
+        "",
         "CrowdNav++'s rows are its released test logs (its RL policy with GST, trained over "
         "20 M steps; 500 episodes of its own simulator, whose rules this environment follows "
         "but for the four differences of docs/navigation.md), not runs here: other episodes. "

@@ -5,8 +5,8 @@
 A planner in `gst_jax.simulate.environment.CrowdNav` (CrowdNav++'s default task) over many
 episodes in one jitted program; CrowdNav++'s and ICP's measures (`simulate/navigation.py`).
 mpc plans against GST's predictions (--model) inflated by conformal radii (--regions),
-cv-mpc against constant-velocity ones. Episodes are seeded from 1000 (CrowdNav++'s test
-offset); the planner's settings were chosen on seed 1.
+cv-mpc against constant-velocity ones; --humans: CrowdNav++'s ORCA or social force. Episodes
+are seeded from 1000 (CrowdNav++'s test offset); the planner's settings were chosen on seed 1.
 """
 
 from __future__ import annotations
@@ -38,11 +38,12 @@ def main(argv: list[str] | None = None) -> None:
     add("--planner", choices=("mpc", "cv-mpc"), default="mpc", help="mpc: against GST's "
         "predictions; cv-mpc: against constant-velocity ones (default: mpc)")
     add("--model", default="pretrained:crowdnav_sj_rand", type=cli.model_spec, help="mpc's "
-        "predictor: a work directory or pretrained:NAME (default: CrowdNav++'s own, "
-        "pretrained:crowdnav_sj_rand)")
+        "predictor: a work directory or pretrained:NAME (default: %(default)s)")
     add("--regions", choices=("dtaci", "aci", "none"), default="dtaci", help="conformal "
         "regions around the predictions (default: dtaci)")
     add("--alpha", type=cli.positive_float, default=0.1, help="their miscoverage (default 0.1)")
+    add("--humans", choices=("orca", "social-force"), default="orca", help="how the humans "
+        "walk: CrowdNav++'s ORCA (default) or its social force")
     add("--episodes", type=cli.positive_int, default=500, help="episodes (default: 500)")
     add("--plans", type=plan_count, default=256, help="plans scored per step (default: 256)")
     add("--seed", type=int, default=1000, help="seed of the episodes (default: 1000)")
@@ -55,11 +56,12 @@ def main(argv: list[str] | None = None) -> None:
 def navigate(args) -> None:
     regions = None if args.regions == "none" else Regions(args.regions, args.alpha)
     predictor = load_model(args.model) if args.planner == "mpc" else CONSTANT_VELOCITY
-    env, params = CrowdNav.with_predictor(predictor, regions=regions)
+    humans = args.humans.replace("-", "_")
+    env, params = CrowdNav.with_predictor(predictor, regions=regions, human_policy=humans)
     planner = SamplingMPC(num_plans=args.plans, horizon=env.pred_len, step_s=params.step_s)
     result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir), {
-        "planner": args.planner, "regions": args.regions, "alpha": args.alpha,
-        "model": args.model if args.planner == "mpc" else None}, args.gif)
+        "planner": args.planner, "regions": args.regions, "alpha": args.alpha, "humans":
+        args.humans, "model": args.model if args.planner == "mpc" else None}, args.gif)
     print(json.dumps(result, indent=2) if args.json else "\n".join(
         f"{key:18s} {value}" for key, value in result.items()))
 

@@ -177,6 +177,25 @@ def test_humans_walk_at_1_m_s_capped_by_their_speed_change_goals_every_5_s_and_r
     np.testing.assert_allclose(after.human_goal[1], -after.human_position[1])
 
 
+def test_social_force_humans_follow_crowdnavs_formula():
+    # crowd_nav/policy/social_force.py with A = 2, B = 1, KI = 1, one 0.25 s step.
+    env = CrowdNav(num_humans=4, human_policy=environment.SOCIAL_FORCE)
+    state = _state(humans=[(-0.5, 0.0), (0.5, 0.0), (0.0, 20.0), (0.0, 40.0)]).replace(
+        human_goal=jnp.array([[4.0, 0.0], [-4.0, 0.0], [4.0, 20.0], [4.0, 40.0]]),
+        human_velocity=jnp.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0], [2.0, 0.0]]),
+        human_v_pref=jnp.array([1.0, 1.0, 1.0, 0.5]))
+    velocity = np.asarray(env.human_velocities(state, PARAMS))
+    # Face to face 1 m apart (radii 0.3): pulled on at 1 (1 - 0), pushed back at
+    # 2 exp(0.6 - 1) = 1.3406.
+    push = 2 * np.exp(0.6 - 1.0)
+    np.testing.assert_allclose(velocity[0], [(1.0 - push) * 0.25, 0.0], atol=1e-5)
+    np.testing.assert_allclose(velocity[1], [-(1.0 - push) * 0.25, 0.0], atol=1e-5)
+    np.testing.assert_allclose(velocity[2], [1.0, 0.0], atol=1e-5)    # already at v_pref
+    np.testing.assert_allclose(velocity[3], [0.5, 0.0], atol=1e-5)    # 1.625 capped at 0.5
+    with pytest.raises(ValueError, match="human_policy"):
+        CrowdNav(human_policy="sfm")
+
+
 def test_step_starts_a_new_episode_where_one_ends_and_vmaps():
     state = _state(humans=[(0.3, 0.0)])
     _, after, _, done, _ = jax.jit(ENV.step)(jax.random.key(1), state, jnp.zeros(2), PARAMS)

@@ -16,7 +16,8 @@ The task is CrowdNav++'s default (Shuijing725/CrowdNav_Prediction_AttnGraph, com
   radius 6 sqrt 2 (shifted by U(0, 2) m per axis) and walk to the opposite point with ORCA
   (`orca.py`; time horizon 5 s, all 19 others, neighbour distance U(5, 10) per episode,
   radius + 0.16 m), not seeing the robot; every 5 s each changes goal with probability 0.5,
-  and one that reaches its goal is replaced by a new human;
+  and one that reaches its goal is replaced by a new human (or, as CrowdNav++'s option
+  `humans.policy = "social_force"`, its social force: `human_policy=SOCIAL_FORCE`);
 - the robot detects a human whose surface lies within 5 m (field of view 360 degrees);
 - reward, on the state before the step's move (CrowdNav++'s order): timeout 0, collision
   (centres closer than the radii) -20 and done, arrival (within 0.3 m of the goal) +10 and
@@ -70,6 +71,8 @@ TRIES = 8
 ROBOT_TRIES = 32
 # `CrowdNav.model` for predictions that repeat each human's last displacement.
 CONSTANT_VELOCITY = "constant_velocity"
+# `CrowdNav.human_policy`: how the humans walk (CrowdNav++'s `humans.policy`).
+ORCA, SOCIAL_FORCE = "orca", "social_force"
 
 
 @flax.struct.dataclass
@@ -99,6 +102,10 @@ class EnvParams:
     safety_space: float = 0.15
     time_horizon: float = 5.0
     neighbour_dist: tuple[float, float] = (5.0, 10.0)
+    # Social force (CrowdNav++'s `sf`): strength A, range B (m), inverse relocation time KI.
+    force_strength: float = 2.0
+    force_range: float = 1.0
+    relocation_rate: float = 1.0
     prediction_radius: float = 0.6
 
 
@@ -150,25 +157,33 @@ class CrowdNav:
     """The environment: `num_humans` humans; predictions over `obs_len` observed steps for
     `pred_len` by `model`: a `StreamModel` (its weights in `EnvParams.predictor`),
     CONSTANT_VELOCITY (each human's last displacement repeated) or None (no prediction);
-    with `regions`, conformal radii around the predicted steps (`gst_jax.stream.Regions`)."""
+    with `regions`, conformal radii around the predicted steps (`gst_jax.stream.Regions`);
+    the humans walk by ORCA or SOCIAL_FORCE (`human_policy`)."""
 
     num_humans: int = 20
     model: StreamModel | str | None = None
     obs_len: int = 5
     pred_len: int = 5
     regions: Regions | None = None
+    human_policy: str = ORCA
+
+    def __post_init__(self):
+        if self.human_policy not in (ORCA, SOCIAL_FORCE):
+            raise ValueError(f"human_policy must be {ORCA!r} or {SOCIAL_FORCE!r}, "
+                             f"got {self.human_policy!r}")
 
     @classmethod
-    def with_predictor(cls, predictor, num_humans: int = 20, regions: Regions | None = None
-                       ) -> tuple["CrowdNav", EnvParams]:
+    def with_predictor(cls, predictor, num_humans: int = 20, regions: Regions | None = None,
+                       human_policy: str = ORCA) -> tuple["CrowdNav", EnvParams]:
         """The environment and its params, predictions by `predictor`: a loaded model
         (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor), CONSTANT_VELOCITY
         or None."""
         if predictor is None or isinstance(predictor, str):
-            return cls(num_humans, predictor, regions=regions), EnvParams()
+            return cls(num_humans, predictor, regions=regions,
+                       human_policy=human_policy), EnvParams()
         run, config = predictor, predictor.model_config
-        return (cls(num_humans, StreamModel(config), config.obs_len, config.pred_len, regions),
-                EnvParams(predictor=run.params))
+        return (cls(num_humans, StreamModel(config), config.obs_len, config.pred_len, regions,
+                    human_policy), EnvParams(predictor=run.params))
 
     @property
     def default_params(self) -> EnvParams:
@@ -238,8 +253,10 @@ class CrowdNav:
 
     # -- parts ----------------------------------------------------------------------------
     def human_velocities(self, state: EnvState, params: EnvParams) -> jax.Array:
-        """Every human's ORCA velocity (H, 2): towards its goal at 1 m/s (less within 1 m of
-        it), at most its preferred speed, among the other humans only."""
+        """Every human's new velocity (H, 2) among the other humans only. ORCA: towards its
+        goal at 1 m/s (less within 1 m of it), at most its preferred speed."""
+        if self.human_policy == SOCIAL_FORCE:
+            return social_force_velocities(state, params)
         to_goal = state.human_goal - state.human_position
         distance = jnp.linalg.norm(to_goal, axis=-1, keepdims=True)
         preferred = jnp.where(distance > 1.0, to_goal / jnp.maximum(distance, 1e-9), to_goal)
@@ -291,6 +308,26 @@ class CrowdNav:
                           detected_human_num=jnp.maximum(visible.sum(), 1).astype(jnp.float32),
                           radii=radii[order])
         return obs, state, futures, predicted
+
+
+def social_force_velocities(state: EnvState, params: EnvParams) -> jax.Array:
+    """CrowdNav++'s social force (crowd_nav/policy/social_force.py), every human (H, 2): its
+    velocity changed in one step by KI (v_pref towards the goal - velocity) and by each other
+    human's push A exp((r_i + r_j - d_ij) / B) along their offset, then capped at v_pref."""
+    to_goal = state.human_goal - state.human_position
+    distance = jnp.linalg.norm(to_goal, axis=-1, keepdims=True)
+    desired = to_goal / jnp.maximum(distance, 1e-9) * state.human_v_pref[:, None]
+    pull = params.relocation_rate * (desired - state.human_velocity)
+    offsets = state.human_position[:, None] - state.human_position[None]          # [i, j] p_i - p_j
+    apart = jnp.linalg.norm(offsets, axis=-1)
+    strength = params.force_strength * jnp.exp(
+        (state.human_radius[:, None] + state.human_radius[None] - apart) / params.force_range)
+    # A human's own offset is zero, so it does not push itself.
+    push = jnp.sum((strength / jnp.maximum(apart, 1e-9))[..., None] * offsets, axis=1)
+    velocity = state.human_velocity + (pull + push) * params.step_s
+    speed = jnp.linalg.norm(velocity, axis=-1, keepdims=True)
+    v_pref = state.human_v_pref[:, None]
+    return jnp.where(speed > v_pref, velocity / jnp.maximum(speed, 1e-9) * v_pref, velocity)
 
 
 def _uniform(key, shape, bounds):
