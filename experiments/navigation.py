@@ -67,12 +67,17 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def success_half_width(success: list[float], episodes: int) -> tuple[float, float]:
+    """The mean success rate and its binomial 95 % half-width over `episodes`."""
+    mean = sum(success) / len(success)
+    return mean, 1.96 * math.sqrt(mean * (1 - mean) / episodes)
+
+
 def reading(rows: list[dict], episodes: int) -> str:
     """What the rows (the four planners among ORCA humans) say about success and
     intrusion, with the binomial 95 % half-width."""
     success = [row["success"] for row in rows]
-    mean = sum(success) / len(success)
-    half = 1.96 * math.sqrt(mean * (1 - mean) / episodes)
+    mean, half = success_half_width(success, episodes)
     spread = max(success) - min(success)
     verdict = "within" if spread <= half else "beyond"
     with_discs = [row["intrusion_ratio"] for row in rows if row["regions"] != "none"]
@@ -90,8 +95,7 @@ def reading(rows: list[dict], episodes: int) -> str:
 def among_social_force(rows: list[dict], episodes: int) -> str:
     """GST against constant velocity among social-force humans, as `reading` does."""
     success = [row["success"] for row in rows]
-    mean = sum(success) / len(success)
-    half = 1.96 * math.sqrt(mean * (1 - mean) / episodes)
+    _, half = success_half_width(success, episodes)
     spread = max(success) - min(success)
     return (f"Among social-force humans the two planners' success rates ({min(success):.3f}, "
             f"{max(success):.3f}) span {spread:.3f}, {'within' if spread <= half else 'beyond'} "
