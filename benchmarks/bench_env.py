@@ -67,6 +67,8 @@ def time_steps(env: CrowdNav, params: EnvParams, envs: int, steps: int, repeats:
 
 
 def time_parts(env: CrowdNav, params: EnvParams, envs: int) -> dict:
+    """Milliseconds of the humans' new velocities and of the predictor's forward pass alone,
+    best of 5 calls, on the states 40 steps into `envs` episodes."""
     keys = jax.random.split(jax.random.key(0), envs)
     _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     step = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))

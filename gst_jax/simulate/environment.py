@@ -15,9 +15,9 @@ The task is CrowdNav++'s default (Shuijing725/CrowdNav_Prediction_AttnGraph, com
 - 20 humans (radius U(0.3, 0.5), preferred speed U(0.5, 1.5)) who start on a circle of
   radius 6 sqrt 2 (shifted by U(0, 2) m per axis) and walk to the opposite point with ORCA
   (`orca.py`; time horizon 5 s, all 19 others, neighbour distance U(5, 10) per episode,
-  radius + 0.16 m), not seeing the robot; every 5 s each changes goal with probability 0.5,
-  and one that reaches its goal is replaced by a new human (or, as CrowdNav++'s option
-  `humans.policy = "social_force"`, its social force: `human_policy=SOCIAL_FORCE`);
+  radius + 0.16 m) or, CrowdNav++'s option `humans.policy = "social_force"`, with its social
+  force (`human_policy=SOCIAL_FORCE`), not seeing the robot; every 5 s each changes goal
+  with probability 0.5, and one that reaches its goal is replaced by a new human;
 - the robot detects a human whose surface lies within 5 m (field of view 360 degrees);
 - reward, on the state before the step's move (CrowdNav++'s order): timeout 0, collision
   (centres closer than the radii) -20 and done, arrival (within 0.3 m of the goal) +10 and
@@ -270,9 +270,9 @@ class CrowdNav:
                      fresh: bool = False) -> tuple[Observation, EnvState, jax.Array, jax.Array]:
         """The observation, the state with the regions updated, the predicted positions
         (H, P, 2) (where a human stands, for those not predicted) and which humans have them
-        (H,): those detected at both of the last two steps, so none on an episode's `fresh`
-        first step (the predictor is not called then: gymnax's auto-reset makes a first
-        step at every step)."""
+        (H,): those detected at both of the last two steps. On an episode's first
+        observation (`fresh`) that is none, and the predictor is not called: gymnax's
+        auto-reset builds such an observation at every step."""
         tracks = state.tracks
         visible = tracks.detected[:, -1] > 0
         predicted = (tracks.detected[:, -2:] > 0).all(axis=-1)
