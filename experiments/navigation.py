@@ -23,7 +23,7 @@ from _common import add_results_flags, results_folder
 
 from gst_jax.runs import load_model
 from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav
-from gst_jax.simulate.navigation import evaluate
+from gst_jax.simulate.navigation import evaluate, record_name
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
 
@@ -45,9 +45,9 @@ CROWDNAV = [
 
 
 def run(planner: str, regions: str, humans: str, episodes: int, seed: int, out) -> dict:
-    name = "-".join([planner, regions, *([humans] if humans != "orca" else []), f"seed{seed}"])
-    if (out / f"{name}.json").exists():
-        return json.loads((out / f"{name}.json").read_text())
+    found = out / f"{record_name(planner, regions, humans, seed)}.json"
+    if found.exists():
+        return json.loads(found.read_text())
     discs = None if regions == "none" else Regions(regions, 0.1)
     predictor = load_model(MODEL) if planner == "mpc" else CONSTANT_VELOCITY
     env, params = CrowdNav.with_predictor(predictor, regions=discs,

@@ -39,10 +39,10 @@ step also gets a conformal radius (`gst_jax.stream.Regions`), scored as the huma
 Where this differs from CrowdNav++, on purpose: rejection sampling of starts and goals takes
 the first acceptable of a fixed number of draws (CrowdNav++ draws until one is); a new
 episode starts with empty histories (CrowdNav++ keeps the last episode's in its predictor's
-buffer); the
-prediction penalty of an episode's last step is computed on that episode (CrowdNav++ computes
-it on the next episode's first observation); each human's ORCA sees every other human's
-current radius (CrowdNav++'s reused simulators keep a replaced human's old one).
+buffer); the prediction penalty of an episode's last step is computed on that episode
+(CrowdNav++ computes it on the next episode's first observation); each human's ORCA sees
+every other human's current radius (CrowdNav++'s reused simulators keep a replaced human's
+old one).
 """
 
 from __future__ import annotations

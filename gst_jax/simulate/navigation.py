@@ -110,15 +110,20 @@ def navigation_measures(episodes: dict, params: EnvParams, intrusion_steps: int 
 
 
 
+def record_name(planner: str, regions: str, humans: str, seed: int) -> str:
+    """The stem of an evaluation's files: PLANNER-REGIONS[-HUMANS]-seedSEED (ORCA's
+    humans, the default, unnamed)."""
+    return "-".join([planner, regions, *([humans] if humans != "orca" else []), f"seed{seed}"])
+
+
 def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int, seed: int,
              out: Path, described: dict, gifs: int = 0) -> dict:
     """`count` episodes of `planner` measured: `described` (its "planner" and "regions",
     and "humans" where they are not ORCA's, name the files), the measures and the timings,
     written to out/PLANNER-REGIONS[-HUMANS]-seedSEED.json, and a GIF of each of the first
     `gifs` episodes beside it."""
-    humans = described.get("humans", "orca")
-    name = "-".join([described["planner"], described["regions"],
-                     *([humans] if humans != "orca" else []), f"seed{seed}"])
+    name = record_name(described["planner"], described["regions"],
+                       described.get("humans", "orca"), seed)
     episodes, compile_s, run_s = run_episodes(env, params, planner, planner.init(), count,
                                               seed=seed)
     result = {**described, "seed": seed, **navigation_measures(episodes, params),
