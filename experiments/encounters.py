@@ -7,7 +7,9 @@
 Every finished member of the study (work directories named n{N}-{partial|full}-seed{S}
 under --study, N = 0 for full connection), the shipped `crowd_d` and the robot driven by
 constant velocity meet the same `--episodes` random encounters
-(`gst_jax.simulate.encounters`, seed 0), each model in one jitted program over all of them.
+(`gst_jax.simulate.encounters`, seed 0), each model in one jitted program over all of them;
+a member's episodes are kept in its work directory (encounters/), so a rerun simulates only the
+members that finished since.
 Per model: the rates of freezing or turning back, of collisions and of arrival with Wilson
 95 % intervals, time to goal and path length ratio. The claim is judged on paired
 differences: per seed and detection mode, member n minus member F on the same episodes, with
@@ -35,14 +37,16 @@ MEMBER = re.compile(r"n(\d+)-(partial|full)-seed(\d+)$")
 
 
 def members(study: Path) -> dict[str, Path]:
-    """The study's finished members (an evaluation written), by label 'n=1 partial 1000'."""
+    """The study's finished members (an evaluation written), by label 'n=1 partial 1000', in
+    the order of n, detection mode and seed."""
     found = {}
-    for workdir in sorted(study.iterdir()):
+    for workdir in study.iterdir():
         match = MEMBER.match(workdir.name)
         if match and workdir.is_dir() and any((workdir / "eval").glob("*.json")):
             n, mode, seed = match.groups()
-            found[f"n={n if n != '0' else 'F'} {mode} {seed}"] = workdir
-    return found
+            found[(int(n), mode, int(seed))] = (f"n={n if n != '0' else 'F'} {mode} {seed}",
+                                                workdir)
+    return dict(found[key] for key in sorted(found))
 
 
 def paired_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
@@ -69,8 +73,11 @@ def main(argv: list[str] | None = None) -> None:
     runs["crowd_d"] = load_model("pretrained:crowd_d")
     labels = ["constant velocity", *runs]
     models = [constant_velocity_model] + [step_models([run])[-1][1] for run in runs.values()]
+    # A member's episodes are kept in its work directory: a rerun simulates only new members.
+    stored = {label: workdir / "encounters" / f"{args.episodes}-seed0.json"
+              for label, workdir in found.items()}
     summaries, rows = run_encounter_study(list(zip(labels, models)), args.episodes, out,
-                                          grid=time_grid(list(runs.values())))
+                                          grid=time_grid(list(runs.values())), stored=stored)
     froze = {label: np.array([r["freezing_or_u_turn"] for r in rows[label]])
              for label in labels}
     pairs = []
@@ -80,7 +87,8 @@ def main(argv: list[str] | None = None) -> None:
         if n != "n=F" and full in froze:
             pairs.append({"sparse": label, "full": full,
                           "freezing_difference": paired_difference(froze[label], froze[full])})
-    record = {"episodes": args.episodes, "seed": 0, "members": list(found),
+    record = {"episodes": args.episodes, "seed": 0, "scene": args.study.name,
+              "members": list(found),
               "models": summaries, "pairs": pairs}
     (out / "encounters.json").write_text(json.dumps(record, indent=1) + "\n")
     (out / "encounters.md").write_text(markdown(record))
@@ -90,8 +98,9 @@ def main(argv: list[str] | None = None) -> None:
 def markdown(record: dict) -> str:
     """The record as results/encounters.md."""
     lines = [f"# {record['episodes']} random encounters per model", "",
-             "Made by `python experiments/encounters.py --study runs/study/eth --publish`: the "
-             f"study's finished ETH members ({', '.join(record['members'])}; 200 epochs), "
+             f"Made by `python experiments/encounters.py --study runs/study/{record['scene']} "
+             f"--publish`: the study's finished {record['scene']} members "
+             f"({', '.join(record['members'])}; 200 epochs), "
              "`crowd_d` and constant velocity on the same episodes (seed 0). Rates with Wilson "
              "95 % intervals; time to goal over the episodes that arrived; episodes/s after "
              "compiling, on the 2-core VM beside the study's two trainings.", "",
@@ -104,9 +113,10 @@ def markdown(record: dict) -> str:
         lines.append(f"| {pair['sparse']} | {pair['full']} | {value:+.3f} "
                      f"[{low:+.3f}, {high:+.3f}] |")
     fewer = sum(p["freezing_difference"][0] < 0 for p in pairs)
-    clear = sum(p["freezing_difference"][2] < 0 for p in pairs)
-    lines += ["", f"Sparsity froze less in {fewer} of {len(pairs)} pairs; the interval "
-              f"excludes 0 in {clear}."]
+    clearly_fewer = sum(p["freezing_difference"][2] < 0 for p in pairs)
+    clearly_more = sum(p["freezing_difference"][1] > 0 for p in pairs)
+    lines += ["", f"Sparsity froze less in {fewer} of {len(pairs)} pairs; the interval lies "
+              f"below 0 in {clearly_fewer} and above 0 in {clearly_more}."]
     return "\n".join(lines) + "\n"
 
 

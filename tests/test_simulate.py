@@ -133,17 +133,38 @@ def test_the_encounter_study_pairs_each_sparse_member_with_its_full_connection(t
     freezing rates on the same episodes with its interval."""
     from encounters import members, paired_difference
 
-    for name, finished in [("n0-partial-seed1000", True), ("n4-partial-seed1000", True),
-                           ("n16-full-seed1001", False)]:
+    for name, finished in [("n16-partial-seed1000", True), ("n0-partial-seed1000", True),
+                           ("n4-partial-seed1000", True), ("n16-full-seed1001", False)]:
         (tmp_path / name / "eval").mkdir(parents=True)
         if finished:
             (tmp_path / name / "eval" / "test.json").write_text("{}")
-    assert list(members(tmp_path)) == ["n=F partial 1000", "n=4 partial 1000"]
+    assert list(members(tmp_path)) == ["n=F partial 1000", "n=4 partial 1000",
+                                       "n=16 partial 1000"]
     sparse = np.array([1, 0, 0, 0, 1, 0, 0, 0], bool)
     full = np.array([1, 1, 1, 0, 1, 1, 0, 0], bool)
     difference, low, high = paired_difference(sparse, full)
     assert difference == pytest.approx(-3 / 8) and low < difference < high
     assert paired_difference(full, full) == (0.0, 0.0, 0.0)
+
+
+def test_a_models_stored_encounters_are_read_back_not_simulated_again(tmp_path):
+    """run_encounter_study(stored=...): the first call simulates and keeps the measures; the
+    second reads them (a model that cannot run proves nothing was simulated); other episodes
+    (another count) are simulated anew."""
+    from gst_jax.simulate.study import run_encounter_study
+
+    stored = {"cv": tmp_path / "cv.json"}
+    first, rows = run_encounter_study([("cv", simulate.constant_velocity_model)], 6,
+                                      tmp_path / "a", stored=stored)
+
+    def cannot_run(*args):
+        raise AssertionError("simulated although stored")
+
+    again, rows_again = run_encounter_study([("cv", cannot_run)], 6, tmp_path / "b",
+                                            stored=stored)
+    assert json.loads(json.dumps(first)) == again and json.loads(json.dumps(rows)) == rows_again
+    with pytest.raises(AssertionError, match="simulated although stored"):
+        run_encounter_study([("cv", cannot_run)], 7, tmp_path / "c", stored=stored)
 
 
 def test_the_encounter_command_writes_rates_and_their_figure(tmp_path, capsys):

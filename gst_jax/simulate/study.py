@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import jax
 import numpy as np
@@ -88,21 +88,39 @@ def format_markdown(rows: Sequence[dict]) -> str:
 
 def run_encounter_study(models: Sequence[tuple[str, StepModel]], count: int, out: Path, *,
                         grid: TimeGrid = TimeGrid(), seed: int = 0,
-                        progress: Progress | None = None) -> tuple[dict, dict]:
+                        progress: Progress | None = None,
+                        stored: Mapping[str, Path] | None = None) -> tuple[dict, dict]:
     """Every model on the same `count` random encounters (`encounters.sample_encounters` of
     `seed`), one program each. Returns (summary per label, with compile and run seconds and
     episodes per second; per label the episodes' measures) and writes out/encounters.json
-    and out/encounters.png."""
+    and out/encounters.png.
+
+    stored: per label, a file that keeps the model's measures of these encounters: read when
+    it holds the same episodes (count, seed, time step), else simulated and written, so that a
+    study that grows simulates only its new members (an n = 16 model runs 2 episodes / s).
+    """
     episodes = sample_encounters(count, seed, grid)
     progress = progress or Progress()
+    stored = stored or {}
+    same_episodes = {"episodes": count, "seed": seed, "step_s": grid.step_s}
     summaries, rows = {}, {}
     for label, model in models:
+        path = stored.get(label)
+        kept = json.loads(path.read_text()) if path and path.is_file() else {}
+        if {key: kept.get(key) for key in same_episodes} == same_episodes:
+            summaries[label], rows[label] = kept["summary"], kept["rows"]
+            progress.line(f"{label}: {count} episodes read from {path}")
+            continue
         positions, compile_s, run_s = run_encounters(model, episodes, jax.random.key(seed))
         rows[label] = episode_measures(positions, episodes)
         summaries[label] = {**summarize(rows[label]), "compile_s": compile_s, "run_s": run_s,
                             "episodes_per_s": count / run_s}
         progress.line(f"{label}: {count} episodes in {run_s:.1f} s ({count / run_s:.1f}/s) "
                       f"after {compile_s:.1f} s compiling")
+        if path:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps({**same_episodes, "summary": summaries[label],
+                                        "rows": rows[label]}) + "\n")
     out.mkdir(parents=True, exist_ok=True)
     (out / "encounters.json").write_text(json.dumps(
         {"episodes": count, "seed": seed, "step_s": grid.step_s, "models": summaries},
