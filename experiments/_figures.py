@@ -1,8 +1,9 @@
 """Figures of the paper's tables, of the schedule check and of the comparative study across
-datasets (Figs. 4-6): improvement of partial over fully detected observation per dataset and n,
-improvement of the best sparse n over full connection against crowd density, the best n per
-dataset, Table I as bars (ours, the paper's and constant velocity per scene), and a shorter
-schedule's change from the paper's per scene."""
+datasets (Figs. 4-6): errors against n per detection mode with every seed, the paired
+differences of partial over fully detected and of sparse over full connection, improvement of
+the best sparse n over full connection against crowd density, the best n per dataset; Table I
+as bars (ours, the paper's and constant velocity per scene), and a shorter schedule's change
+from the paper's per scene."""
 
 from __future__ import annotations
 
@@ -11,25 +12,67 @@ from typing import Sequence
 
 import numpy as np
 
-from gst_jax.figures import n_label, plt, save
+from gst_jax.figures import DETECTION_STYLE, n_label, plt, save
 
 
-def partial_vs_full_detection(all_results: Sequence[dict], path: Path) -> Path:
-    """Grouped bars: AOE improvement (%) of partial over fully detected, per dataset and n."""
-    fig, ax = plt.subplots(figsize=(7.0, 2.8))
-    scenes = [r["scene"] for r in all_results]
-    heads = sorted({int(n) for r in all_results for n in r["partial_vs_fully_detected"]})
-    width = 0.8 / max(len(heads), 1)
-    for k, n in enumerate(heads):
-        values = [r["partial_vs_fully_detected"].get(str(n), {}).get("aoe_pct", float("nan"))
-                  for r in all_results]
-        ax.bar([i + k * width for i in range(len(scenes))], values, width, label=f"n={n_label(n)}")
-    ax.axhline(0, color="black", lw=0.8)
-    ax.set_xticks([i + 0.4 - width / 2 for i in range(len(scenes))], scenes)
-    ax.set_ylabel("AOE improvement,\npartial over full (%)")
-    if heads:                          # none when a sweep trained one detection mode only
-        ax.legend(fontsize=7, ncol=len(heads))
-    ax.grid(axis="y", alpha=0.3)
+def errors_against_n_per_seed(all_results: Sequence[dict], path: Path) -> Path:
+    """The paper's Fig. 4, a row per scene: AOE and FOE against n, one line per detection
+    mode (mean over seeds), every seed a dot, constant velocity dashed."""
+    fig, axes = plt.subplots(len(all_results), 2, figsize=(7.0, 2.6 * len(all_results)),
+                             squeeze=False, gridspec_kw=dict(wspace=0.3))
+    for row, results in zip(axes, all_results):
+        heads = sorted({m["edge_heads"] for m in results["members"]})
+        x = {n: i for i, n in enumerate(heads)}
+        for ax, metric in zip(row, ("aoe", "foe")):
+            for detection, style in DETECTION_STYLE.items():
+                cells = sorted((c for c in results["table"] if c["detection"] == detection),
+                               key=lambda c: c["edge_heads"])
+                if not cells:
+                    continue
+                ax.plot([x[c["edge_heads"]] for c in cells], [c[metric] for c in cells],
+                        label=f"{detection} detection", **style)
+                seeds = [m for m in results["members"]
+                         if m["fully_detected_only"] == (detection == "full")]
+                ax.scatter([x[m["edge_heads"]] for m in seeds], [m[metric] for m in seeds],
+                           s=10, alpha=0.5, color=style["color"])
+            ax.axhline(results["table"][0][f"cv_{metric}"], color="gray", ls="--", lw=1,
+                       label="constant velocity")
+            ax.set_xticks(range(len(heads)), [n_label(n) for n in heads])
+            ax.set_xlabel("n (F = full connection)")
+            ax.set_ylabel(f"{results['scene']}: {metric.upper()} (m)")
+            ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle(all_results[0]["protocol"].split(", seeds")[0] + "; dots: seeds", fontsize=7)
+    return save(fig, path)
+
+
+def paired_gains(differences: dict[str, list[dict]], path: Path) -> Path:
+    """The paper's Fig. 6 as paired differences (lower favours the paper): AOE of partial
+    minus fully detected per n, AOE of sparse n minus full connection, and the freezing rate
+    of sparse n minus full connection on the same encounters; a bar per (scene, n, mode) at
+    the mean over seeds, every seed a dot."""
+    panels = [("partial", "aoe", "AOE: partial - fully detected (m)"),
+              ("sparse", "aoe", "AOE: n - full connection (m)"),
+              ("freezing", "freezing", "freezing: n - full connection")]
+    panels = [panel for panel in panels if differences.get(panel[0])]
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.0 * len(panels), 2.8), squeeze=False,
+                             gridspec_kw=dict(wspace=0.35))
+    for ax, (claim, key, label) in zip(axes[0], panels):
+        groups: dict[tuple, list[float]] = {}
+        for d in differences[claim]:
+            groups.setdefault((d["scene"], d["edge_heads"], d["detection"] or ""), []).append(
+                d[key])
+        keys = sorted(groups)
+        for i, (scene, n, detection) in enumerate(keys):
+            values = groups[(scene, n, detection)]
+            color = DETECTION_STYLE[detection]["color"] if detection else "tab:green"
+            ax.bar(i, np.mean(values), 0.7, color=color, alpha=0.5)
+            ax.scatter([i] * len(values), values, s=10, color=color)
+        ax.set_xticks(range(len(keys)), [f"{s}\nn={n_label(n)}\n{d}" for s, n, d in keys],
+                      fontsize=6)
+        ax.axhline(0, color="black", lw=0.8)
+        ax.set_ylabel(label, fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
     return save(fig, path)
 
 

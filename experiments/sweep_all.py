@@ -1,31 +1,42 @@
-"""The comparative study across datasets (paper Figs. 4-6): one vmapped sweep per scene.
+"""The comparative study across datasets (paper Figs. 4-6) and the paper's claims judged on it.
 
     python experiments/sweep_all.py --scenes zara1 hotel --epochs 20 --seeds 3 \
         --workdir runs/sweep_all
+    python experiments/sweep_all.py --scenes eth --edge-heads 0,1,4,16 --layout runs \
+        --workers 2 --workdir runs/study --publish
 
-Each scene's sweep goes to <workdir>/<scene>/ (resumable, its own table and figure); the
-cross-dataset figures and one markdown summary go to <workdir>/. --epochs is the budget:
-tau anneals 0.5 -> 0.03 over it, so a short budget is a short training, not a truncated
-200-epoch one; the learning rate decays every 50 epochs as in the release (`--schedule paper`)
-or every epochs/4 (`--schedule compressed`, results/schedules.md).
+--layout sweep (the default) trains each scene's members in one program, <workdir>/<scene>/
+(resumable); --layout runs trains each member as its own run, --workers at once, in
+<workdir>/<scene>/<member>/ (experiments/_study.py; --tabulate trains nothing and tabulates
+the members already evaluated). Either writes the study's tables (study.md, study.json) and
+figures to <workdir>, or with --publish to results/, with the members' records in
+results/runs/ (runs layout only). --epochs is the budget: tau anneals 0.5 -> 0.03 over it, so
+a short budget is a short training, not a truncated 200-epoch one; the learning rate decays
+every 50 epochs as in the release (`--schedule paper`) or every epochs/4 (`--schedule
+compressed`, results/schedules.md). The claims count the freezing robot from --encounters
+(experiments/encounters.py's record) when it exists.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 
-from _figures import best_n_per_dataset, partial_vs_full_detection, sparse_gain_against_density
+import _common
+from _figures import (best_n_per_dataset, errors_against_n_per_seed, paired_gains,
+                      sparse_gain_against_density)
+from _study import finished_members, format_claims, judge_claims, record_file, train_members
 
-from gst_jax import cli
+from gst_jax import cli, data
 from gst_jax.config import (CROWD_SCENES, DETECTION, SCHEDULES, DataConfig, ModelConfig,
                             TrainConfig)
 from gst_jax.training.members import plan_members, sweep_model_config
-from gst_jax.training.sweep import fit_sweep, format_markdown
+from gst_jax.training.sweep import fit_sweep, format_markdown, summarize
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", nargs="+", default=list(CROWD_SCENES), choices=CROWD_SCENES,
                         help="datasets to sweep (default: all seven)")
@@ -41,33 +52,113 @@ def main() -> None:
                         help="learning-rate decay: paper (every 50 epochs) or compressed "
                              f"(every epochs/4) (default: {TrainConfig.schedule})")
     parser.add_argument("--eval-samples", type=int, default=20, help="K per member (default: 20)")
+    parser.add_argument("--layout", choices=("sweep", "runs"), default="sweep",
+                        help="sweep: a scene's members in one program; runs: each member its "
+                             "own run (default: sweep)")
+    parser.add_argument("--workers", type=cli.positive_int, default=1,
+                        help="runs layout: members trained at once, a core each (default: 1)")
+    parser.add_argument("--tabulate", action="store_true",
+                        help="runs layout: train nothing, tabulate the evaluated members")
+    parser.add_argument("--encounters", type=Path, default=None,
+                        help="experiments/encounters.py's record, for the freezing claim "
+                             "(default: results/encounters.json)")
     parser.add_argument("--max-train-windows", type=int, default=0, help="smoke tests only")
     parser.add_argument("--max-eval-windows", type=int, default=0, help="smoke tests only")
-    parser.add_argument("--workdir", default="runs/sweep_all", help="output directory")
-    args = parser.parse_args()
+    parser.add_argument("--workdir", type=Path, default=Path("runs/sweep_all"),
+                        help="where the members train and the tables go (default: runs/sweep_all)")
+    parser.add_argument("--publish", action="store_true",
+                        help="runs layout: write the tables, figures and members' records into "
+                             "results/ (a record there counts as a finished member)")
+    args = parser.parse_args(argv)
+    if args.layout == "sweep" and (args.publish or args.tabulate):
+        parser.error("--publish and --tabulate need --layout runs")
 
-    out = Path(args.workdir)
     members = plan_members(args.edge_heads, args.fully_detected_only,
                            [args.seed + i for i in range(args.seeds)])
-    config = sweep_model_config(ModelConfig(), members)
     train_config = TrainConfig(epochs=args.epochs, seed=args.seed, schedule=args.schedule,
                                max_train_windows=args.max_train_windows)
     all_results = []
     for scene in args.scenes:
-        print(f"== {scene}")
+        print(f"== {scene}", flush=True)
         data_config = DataConfig(scene=scene, protocol=args.protocol)
-        all_results.append(fit_sweep(config, data_config, train_config, members, out / scene,
-                                     eval_samples=args.eval_samples,
-                                     max_eval_windows=args.max_eval_windows))
+        if args.layout == "sweep":
+            all_results.append(fit_sweep(
+                sweep_model_config(ModelConfig(), members), data_config, train_config, members,
+                args.workdir / scene, eval_samples=args.eval_samples,
+                max_eval_windows=args.max_eval_windows))
+        elif results := tabulate_runs(args, scene, data_config, train_config, members):
+            all_results.append(results)
+    if not all_results:
+        raise SystemExit("no member has finished: nothing to tabulate")
+    encounters_file = args.encounters or _common.RESULTS / "encounters.json"
+    encounters = (json.loads(encounters_file.read_text()) if encounters_file.is_file()
+                  else None)
+    write_study(all_results, judge_claims(all_results, encounters),
+                _common.RESULTS if args.publish else args.workdir)
 
-    partial_vs_full_detection(all_results, out / "partial_vs_full.png")
-    sparse_gain_against_density(all_results, out / "sparse_gain_vs_density.png")
-    best_n_per_dataset(all_results, out / "best_n.png")
-    (out / "results.json").write_text(json.dumps(all_results, indent=2) + "\n")
-    (out / "results.md").write_text("\n".join(format_markdown(r) for r in all_results))
-    print((out / "results.md").read_text())
-    print(f"written under {out}: results.json, results.md, partial_vs_full.png, "
-          "sparse_gain_vs_density.png, best_n.png")
+
+def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: TrainConfig,
+                  members) -> dict | None:
+    """Train the scene's unfinished members as runs (unless --tabulate), then summarize the
+    evaluated ones as a sweep's results (None: none evaluated yet)."""
+    folder = args.workdir / scene
+
+    def finished():
+        return finished_members(members, scene, args.protocol, args.epochs, folder,
+                                published=args.publish)
+
+    if not args.tabulate:
+        waiting = [m for m in members if m not in finished()]
+        failed = train_members(waiting, scene, folder, args.workers, protocol=args.protocol,
+                               epochs=args.epochs, schedule=args.schedule,
+                               eval_samples=args.eval_samples,
+                               max_train_windows=args.max_train_windows)
+        if failed:
+            print(f"{scene}: failed, see their logs in {folder}: {', '.join(failed)}")
+    records = finished()
+    if not records:
+        return None
+    if args.publish:
+        for member, record in records.items():
+            if not record_file(scene, member, args.epochs).is_file():
+                shutil.copy2(folder / member.name / "eval" /
+                             f"{scene}-{args.protocol}-test-e{args.epochs}.json",
+                             record_file(scene, member, args.epochs))
+    evaluated = [m for m in members if m in records]
+    test_set = data.load_split(data_config, "test", ModelConfig().grid)
+    results = summarize([records[m] for m in evaluated], evaluated, data_config, train_config,
+                        args.eval_samples, test_set)
+    return {**results, "waiting": [m.name for m in members if m not in records]}
+
+
+def write_study(all_results: list[dict], judged: dict, out: Path) -> None:
+    """study.json, study.md and the figures in `out`."""
+    out.mkdir(parents=True, exist_ok=True)
+    figures = {"study_fig4_errors_vs_n.png": errors_against_n_per_seed(
+        all_results, out / "study_fig4_errors_vs_n.png")}
+    differences = {claim: v["differences"] for claim, v in judged["claims"].items()}
+    if any(differences.values()):     # none before a pair of members has finished
+        figures["study_fig6_paired_gains.png"] = paired_gains(
+            differences, out / "study_fig6_paired_gains.png")
+    if len(all_results) > 1:          # across datasets: gains against density, best n
+        figures["study_sparse_gain_vs_density.png"] = sparse_gain_against_density(
+            all_results, out / "study_sparse_gain_vs_density.png")
+        figures["study_best_n.png"] = best_n_per_dataset(all_results, out / "study_best_n.png")
+    (out / "study.json").write_text(json.dumps({"scenes": all_results, **judged}, indent=1)
+                                    + "\n")
+    markdown = ["# The comparative study (paper Figs. 4-6) and the paper's claims", "",
+                "Made by experiments/sweep_all.py as docs/reproducing.md (\"The comparative "
+                "study\") says."]
+    for results in all_results:
+        if results.get("waiting"):     # a study of runs that have not all finished
+            markdown.append(f"{results['scene']}: {len(results['members'])} members evaluated, "
+                            f"{len(results['waiting'])} waiting ({', '.join(results['waiting'])}).")
+    markdown = "\n".join(markdown + [""] + [format_markdown(r, "## Scene")
+                                            for r in all_results]) + "\n" + format_claims(judged)
+    markdown += "\n" + "\n".join(f"![{name}]({name})" for name in figures) + "\n"
+    (out / "study.md").write_text(markdown)
+    print(markdown)
+    print(f"written in {out}: study.json, study.md, " + ", ".join(figures))
 
 
 if __name__ == "__main__":

@@ -150,7 +150,7 @@ def test_summary_quantities_and_cross_dataset_figures(tmp_path):
     assert abs(zara1["sparse_vs_full_connection_partial"]["aoe_pct"] - 100 * (0.6 - 0.4) / 0.6) < 1e-9
     assert abs(zara1["partial_vs_fully_detected"]["4"]["aoe_pct"] - 100 * (0.5 - 0.4) / 0.5) < 1e-9
     assert zara1["density"] >= 0
-    for draw, name in ((figures.partial_vs_full_detection, "a.png"),
+    for draw, name in ((figures.errors_against_n_per_seed, "a.png"),
                        (figures.sparse_gain_against_density, "b.png"),
                        (figures.best_n_per_dataset, "c.png")):
         assert draw(all_results, tmp_path / name).stat().st_size > 5_000

@@ -169,8 +169,8 @@ def summarize(evaluations: list[dict], members: Sequence[Member], data_config: D
     }
 
 
-def format_markdown(results: dict) -> str:
-    lines = [f"# Sweep: {results['scene']}", "", f"Protocol: {results['protocol']}.", "",
+def format_markdown(results: dict, heading: str = "# Sweep") -> str:
+    lines = [f"{heading}: {results['scene']}", "", f"Protocol: {results['protocol']}.", "",
              "| n | detection | seeds | AOE (m) | FOE (m) |", "|---|---|---|---|---|"]
     for row in results["table"]:
         n = "F (full connection)" if row["edge_heads"] == 0 else str(row["edge_heads"])
