@@ -17,6 +17,7 @@ The claims, each judged on paired differences where lower favours the paper:
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -103,23 +104,33 @@ def train_members(members: Sequence[Member], scene: str, folder: Path, workers: 
         free_cores.put(cores[slot % len(cores)] if workers > 1 and cores else None)
     done: list[str] = []
     failed: list[str] = []
+    study_started = time.time()
 
     def run(member: Member) -> None:
         core = free_cores.get()
-        pin = (lambda: os.sched_setaffinity(0, {core})) if core is not None else None
         started = time.time()
-        print(f"{scene} {member.name}: training" + (f" on core {core}" if pin else "")
+        print(f"{scene} {member.name}: training" + (f" on core {core}" if core is not None
+                                                     else "")
               + f", log {folder / member.name}.log", flush=True)
-        with open(folder / f"{member.name}.log", "a") as log:
-            for command in member_commands(member, scene, workdir=folder / member.name,
-                                           **settings):
-                if subprocess.call(command, stdout=log, stderr=log, preexec_fn=pin):
-                    failed.append(member.name)
-                    break
-        free_cores.put(core)
+        try:
+            with open(folder / f"{member.name}.log", "a") as log:
+                for command in member_commands(member, scene, workdir=folder / member.name,
+                                               **settings):
+                    process = subprocess.Popen(command, stdout=log, stderr=log)
+                    if core is not None:    # pinned from here (no preexec_fn: threads)
+                        with contextlib.suppress(ProcessLookupError):    # ended already
+                            os.sched_setaffinity(process.pid, {core})
+                    if process.wait():
+                        failed.append(member.name)
+                        break
+        finally:
+            free_cores.put(core)
         done.append(member.name)
+        # Members finish at the pace so far (the workers included); larger n cost more.
+        to_go = (time.time() - study_started) / len(done) * (len(members) - len(done))
         print(f"{scene} {member.name}: {'failed' if member.name in failed else 'finished'} "
-              f"after {time.time() - started:.0f} s ({len(done)} of {len(members)})", flush=True)
+              f"after {time.time() - started:.0f} s ({len(done)} of {len(members)}, about "
+              f"{to_go / 3600:.1f} h to go at this pace)", flush=True)
 
     with ThreadPoolExecutor(workers) as pool:
         list(pool.map(run, members))
@@ -190,8 +201,9 @@ def judge_claims(all_results: Sequence[dict], encounters: dict | None) -> dict:
                          "differences": differences[claim]}
         if key == "aoe":
             claims[claim]["foe_favour"] = sum(d["foe"] < 0 for d in differences[claim])
-    constant_velocity = {r["scene"]: {"aoe": r["table"][0]["cv_aoe"],
-                                      "foe": r["table"][0]["cv_foe"]} for r in all_results}
+    constant_velocity: dict = {"scenes": {r["scene"]: {"aoe": r["table"][0]["cv_aoe"],
+                                                       "foe": r["table"][0]["cv_foe"]}
+                                          for r in all_results}}
     if encounters:
         rates = encounters["models"]["constant velocity"]
         constant_velocity["encounters"] = {key: rates[key][0]
@@ -224,11 +236,11 @@ def format_claims(judged: dict) -> str:
         lines.append(f"| {number}. {claim['claim']} | {favour} | {means or '-'} | "
                      f"**{claim['verdict']}** |")
     lines += ["", "Constant velocity on the same pedestrians: " + "; ".join(
-        f"{scene} AOE {v['aoe']:.3f} / FOE {v['foe']:.3f}" for scene, v in cv.items()
-        if scene != "encounters") + "."]
+        f"{scene} AOE {v['aoe']:.3f} / FOE {v['foe']:.3f}" for scene, v in cv["scenes"].items())
+        + "."]
     if "encounters" in cv:
-        lines[-1] += (f" On the encounters it never turns (froze "
-                      f"{cv['encounters']['freezing_or_u_turn']:.3f}) and collided in "
+        lines[-1] += (f" On the same encounters it froze or turned back in "
+                      f"{cv['encounters']['freezing_or_u_turn']:.3f} of them and collided in "
                       f"{cv['encounters']['collided']:.3f}.")
     lines += ["", "| claim | pair | seed | difference |", "|---|---|---|---|"]
     for number, claim in enumerate(judged["claims"].values(), 1):

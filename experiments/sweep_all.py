@@ -27,7 +27,8 @@ from pathlib import Path
 import _common
 from _figures import (best_n_per_dataset, errors_against_n_per_seed, paired_gains,
                       sparse_gain_against_density)
-from _study import finished_members, format_claims, judge_claims, record_file, train_members
+from _study import (evaluation_file, finished_members, format_claims, judge_claims,
+                    record_file, train_members)
 
 from gst_jax import cli, data
 from gst_jax.config import (CROWD_SCENES, DETECTION, SCHEDULES, DataConfig, ModelConfig,
@@ -121,9 +122,8 @@ def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: Train
     if args.publish:
         for member, record in records.items():
             if not record_file(scene, member, args.epochs).is_file():
-                shutil.copy2(folder / member.name / "eval" /
-                             f"{scene}-{args.protocol}-test-e{args.epochs}.json",
-                             record_file(scene, member, args.epochs))
+                shutil.copy2(evaluation_file(folder / member.name, scene, args.protocol,
+                                             args.epochs), record_file(scene, member, args.epochs))
     evaluated = [m for m in members if m in records]
     test_set = data.load_split(data_config, "test", ModelConfig().grid)
     results = summarize([records[m] for m in evaluated], evaluated, data_config, train_config,
@@ -146,16 +146,17 @@ def write_study(all_results: list[dict], judged: dict, out: Path) -> None:
         figures["study_best_n.png"] = best_n_per_dataset(all_results, out / "study_best_n.png")
     (out / "study.json").write_text(json.dumps({"scenes": all_results, **judged}, indent=1)
                                     + "\n")
-    markdown = ["# The comparative study (paper Figs. 4-6) and the paper's claims", "",
-                "Made by experiments/sweep_all.py as docs/reproducing.md (\"The comparative "
-                "study\") says."]
+    header = ["# The comparative study (paper Figs. 4-6) and the paper's claims", "",
+              "Made by experiments/sweep_all.py as docs/reproducing.md (\"The comparative "
+              "study\") says."]
     for results in all_results:
         if results.get("waiting"):     # a study of runs that have not all finished
-            markdown.append(f"{results['scene']}: {len(results['members'])} members evaluated, "
-                            f"{len(results['waiting'])} waiting ({', '.join(results['waiting'])}).")
-    markdown = "\n".join(markdown + [""] + [format_markdown(r, "## Scene")
-                                            for r in all_results]) + "\n" + format_claims(judged)
-    markdown += "\n" + "\n".join(f"![{name}]({name})" for name in figures) + "\n"
+            header.append(f"{results['scene']}: {len(results['members'])} members evaluated, "
+                          f"{len(results['waiting'])} waiting ({', '.join(results['waiting'])}).")
+    sections = (["\n".join(header + [""])]
+                + [format_markdown(r, "## Scene") for r in all_results]
+                + [format_claims(judged), "\n".join(f"![{name}]({name})" for name in figures)])
+    markdown = "\n".join(sections) + "\n"
     (out / "study.md").write_text(markdown)
     print(markdown)
     print(f"written in {out}: study.json, study.md, " + ", ".join(figures))
