@@ -18,6 +18,7 @@ The claims, each judged on paired differences where lower favours the paper:
 from __future__ import annotations
 
 import contextlib
+import datetime
 import json
 import os
 import queue
@@ -130,7 +131,7 @@ def train_members(members: Sequence[Member], scene: str, folder: Path, workers: 
         to_go = (time.time() - study_started) / len(done) * (len(members) - len(done))
         print(f"{scene} {member.name}: {'failed' if member.name in failed else 'finished'} "
               f"after {time.time() - started:.0f} s ({len(done)} of {len(members)}, about "
-              f"{to_go / 3600:.1f} h to go at this pace)", flush=True)
+              f"{datetime.timedelta(seconds=round(to_go))} to go at this pace)", flush=True)
 
     with ThreadPoolExecutor(workers) as pool:
         list(pool.map(run, members))
