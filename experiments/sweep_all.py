@@ -109,7 +109,8 @@ def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: Train
                                 published=args.publish)
 
     if not args.tabulate:
-        waiting = [m for m in members if m not in finished()]
+        done = finished()
+        waiting = [m for m in members if m not in done]
         failed = train_members(waiting, scene, folder, args.workers, protocol=args.protocol,
                                epochs=args.epochs, schedule=args.schedule,
                                eval_samples=args.eval_samples,
