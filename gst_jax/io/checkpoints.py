@@ -10,6 +10,7 @@ import os
 import sys
 import tempfile
 import threading
+import time
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterator, NamedTuple
@@ -196,6 +197,17 @@ class Checkpointer:
             {e: c for e, c in checksums.items() if e in kept}, indent=1))
 
 
+# The longest a failed save waits for the writer threads to finish reporting the failure.
+WRITER_REPORTS_TIMEOUT_S = 5.0
+
+
+def _join_started_since(threads_before: set[threading.Thread], timeout_s: float) -> None:
+    """Wait, `timeout_s` at most in all, for the threads that are not in `threads_before`."""
+    deadline = time.monotonic() + timeout_s
+    for thread in set(threading.enumerate()) - threads_before:
+        thread.join(max(0.0, deadline - time.monotonic()))
+
+
 @contextlib.contextmanager
 def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
     """A failed write (a full disk) is raised, once: orbax's and tensorstore's writer threads
@@ -203,11 +215,13 @@ def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
     at exit. So stderr (the file descriptor, which C++ writes to as well) is held back during
     the save and replayed if it succeeds; after a failure their reports are silenced first,
     and only then is `then` called (closing the writers, whose threads fail on a closed event
-    loop) and stderr given back."""
+    loop); stderr is given back once the threads started meanwhile have ended, so that a page
+    still being written cannot land after the one-line error."""
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
         stderr = os.dup(2)
         os.dup2(held.fileno(), 2)
+        threads_before = set(threading.enumerate())
         try:
             yield
         except BaseException:
@@ -219,6 +233,7 @@ def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
             warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
             with contextlib.suppress(Exception):
                 then()
+            _join_started_since(threads_before, timeout_s=WRITER_REPORTS_TIMEOUT_S)
             raise
         else:
             held.seek(0)
