@@ -8,6 +8,7 @@ run, and a sweep member trains exactly as the single run of its seed.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import flax
@@ -50,6 +51,7 @@ def make_optimizer() -> optax.GradientTransformation:
     return optax.inject_hyperparams(optax.adam)(learning_rate=1e-3)
 
 
+@functools.partial(jax.jit, static_argnums=0)   # one program, not one per array (see init_params)
 def create_train_state(model_config: ModelConfig, key: jax.Array) -> TrainState:
     params = init_params(model_config, key)
     return TrainState(params=params, opt_state=make_optimizer().init(params), step=jnp.int32(0))
