@@ -243,4 +243,7 @@ def test_constant_velocity_predictions_and_conformal_radii_around_them(step_env)
     row = np.asarray(obs.spatial_edges[0]).reshape(6, 2)
     np.testing.assert_allclose(row[1:], now + np.outer(np.arange(1, 6), [0.0, 0.25]), atol=1e-3)
     radii = np.asarray(obs.radii[0])
-    assert radii.shape == (5,) and np.all(np.isfinite(radii)) and np.all(radii > 0)
+    assert radii.shape == (5,) and np.all(np.isfinite(radii))
+    # One step ahead the walker, at constant velocity by now, is predicted exactly: its
+    # radius is 0 up to rounding. Further ahead the errors of its start from rest remain.
+    assert 0 <= radii[0] < 1e-6 and np.all(radii[1:] > 0.1)

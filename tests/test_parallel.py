@@ -102,8 +102,8 @@ def measured(tmp_path_factory) -> tuple[dict, dict]:
     folder = tmp_path_factory.mktemp("parallel")
     processes = []
     for count in (1, 4):
-        environment = {**os.environ,
-                       "XLA_FLAGS": f"--xla_force_host_platform_device_count={count}"}
+        environment = {**os.environ, "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")
+                       + f" --xla_force_host_platform_device_count={count}"}
         processes.append(subprocess.Popen(
             [sys.executable, "-c", SCRIPT, str(count), str(folder / f"{count}.npz")],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=environment))
