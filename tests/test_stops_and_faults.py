@@ -204,15 +204,23 @@ def test_a_checkpoint_that_cannot_be_written_is_one_line_and_never_used(tmp_path
 def test_a_writer_thread_still_reporting_the_failure_is_not_heard_after_it(capfd):
     # Orbax's writer threads print the failure in pages of tracebacks; one still writing when
     # the save raises once ended a CI run's one-line error with "RuntimeError: Event loop is
-    # closed". Its report goes where the rest went, not to the user's terminal.
-    def report_late():
-        time.sleep(0.3)
-        os.write(2, b"RuntimeError: Event loop is closed\n")
+    # closed". Its report goes where the rest went, not to the user's terminal, whether the
+    # thread started during the save or before it (orbax's event loop), line by line.
+    def report_late(start: threading.Event, seconds_a_line: float):
+        start.wait()
+        for line in (b"Traceback (most recent call last):\n", b"    self._check_closed()\n",
+                     b"RuntimeError: Event loop is closed\n"):
+            time.sleep(seconds_a_line)
+            os.write(2, line)
 
-    with pytest.raises(OSError), _failures_quiet(then=lambda: None):
-        threading.Thread(target=report_late).start()
+    running_before = threading.Event()
+    threading.Thread(target=report_late, args=(running_before, 0.3)).start()
+    with pytest.raises(OSError), _failures_quiet(then=running_before.set):
+        started_during = threading.Event()
+        threading.Thread(target=report_late, args=(started_during, 0.1)).start()
+        started_during.set()
         raise OSError("File too large")
-    time.sleep(0.5)
+    time.sleep(1.0)
     assert "Event loop" not in capfd.readouterr().err
 
 

@@ -197,8 +197,10 @@ class Checkpointer:
             {e: c for e, c in checksums.items() if e in kept}, indent=1))
 
 
-# The longest a failed save waits for the writer threads to finish reporting the failure.
+# The longest a failed save waits for the writer threads to finish reporting the failure,
+# and how long nothing must have been written to the held stderr before it is given back.
 WRITER_REPORTS_TIMEOUT_S = 5.0
+WRITERS_QUIET_S = 1.0
 
 
 def _join_started_since(threads_before: set[threading.Thread], timeout_s: float) -> None:
@@ -208,6 +210,17 @@ def _join_started_since(threads_before: set[threading.Thread], timeout_s: float)
         thread.join(max(0.0, deadline - time.monotonic()))
 
 
+def _wait_until_quiet(held, quiet_s: float, timeout_s: float) -> None:
+    """Wait until nothing has been written to `held` for `quiet_s` (`timeout_s` at most): a
+    thread that ran before the save began (orbax's event loop) may still be mid-page."""
+    deadline = time.monotonic() + timeout_s
+    size, quiet_since = os.fstat(held.fileno()).st_size, time.monotonic()
+    while time.monotonic() - quiet_since < quiet_s and time.monotonic() < deadline:
+        time.sleep(0.05)
+        if (grown := os.fstat(held.fileno()).st_size) != size:
+            size, quiet_since = grown, time.monotonic()
+
+
 @contextlib.contextmanager
 def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
     """A failed write (a full disk) is raised, once: orbax's and tensorstore's writer threads
@@ -215,8 +228,9 @@ def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
     at exit. So stderr (the file descriptor, which C++ writes to as well) is held back during
     the save and replayed if it succeeds; after a failure their reports are silenced first,
     and only then is `then` called (closing the writers, whose threads fail on a closed event
-    loop); stderr is given back once the threads started meanwhile have ended, so that a page
-    still being written cannot land after the one-line error."""
+    loop); stderr is given back once the threads started meanwhile have ended and nothing has
+    been written for a second, so that a page still being written cannot land after the
+    one-line error."""
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
         stderr = os.dup(2)
@@ -234,6 +248,7 @@ def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
             with contextlib.suppress(Exception):
                 then()
             _join_started_since(threads_before, timeout_s=WRITER_REPORTS_TIMEOUT_S)
+            _wait_until_quiet(held, WRITERS_QUIET_S, timeout_s=WRITER_REPORTS_TIMEOUT_S)
             raise
         else:
             held.seek(0)
