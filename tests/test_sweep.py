@@ -155,6 +155,13 @@ def test_summary_quantities_and_cross_dataset_figures(tmp_path):
     assert abs(zara1["sparse_vs_full_connection_partial"]["aoe_pct"] - 100 * (0.6 - 0.4) / 0.6) < 1e-9
     assert abs(zara1["partial_vs_fully_detected"]["4"]["aoe_pct"] - 100 * (0.5 - 0.4) / 0.5) < 1e-9
     assert zara1["density"] >= 0
+    markdown = sweep.format_markdown(zara1).splitlines()
+    assert ("Best n (partial detection, by AOE): 4; against full connection: AOE 33.3 % better, "
+            "FOE 33.3 % better.") in markdown
+    assert ("n = 4: partial against fully detected: AOE 20.0 % better, FOE 20.0 % better."
+            in markdown)
+    assert (sweep._in_words({"aoe_pct": -10.5, "foe_pct": 0.0})
+            == "AOE 10.5 % worse, FOE 0.0 % better")
     for draw, name in ((figures.errors_against_n_per_seed, "a.png"),
                        (figures.sparse_gain_against_density, "b.png"),
                        (figures.best_n_per_dataset, "c.png")):

@@ -186,13 +186,20 @@ def format_markdown(results: dict, heading: str = "# Sweep") -> str:
             line = f"Best n ({detection} detection, by AOE): {results[f'best_n_{detection}']}"
             gain = results.get(f"sparse_vs_full_connection_{detection}")
             if gain:
-                line += (f"; improvement over full connection: AOE {gain['aoe_pct']:+.1f} %, "
-                         f"FOE {gain['foe_pct']:+.1f} %")
+                line += f"; against full connection: {_in_words(gain)}"
             lines.append(line + ".")
     for n, gain in results["partial_vs_fully_detected"].items():
-        lines.append(f"n = {n}: partial over fully detected: AOE {gain['aoe_pct']:+.1f} %, "
-                     f"FOE {gain['foe_pct']:+.1f} %.")
+        lines.append(f"n = {n}: partial against fully detected: {_in_words(gain)}.")
     return "\n".join(lines) + "\n"
+
+
+def _in_words(gain: dict) -> str:
+    """'AOE 10.5 % better, FOE 3.1 % worse' from {'aoe_pct': 10.5, 'foe_pct': -3.1}."""
+    words = []
+    for name in ("aoe", "foe"):
+        pct = gain[f"{name}_pct"]
+        words.append(f"{name.upper()} {abs(pct):.1f} % {'better' if pct >= 0 else 'worse'}")
+    return ", ".join(words)
 
 
 def write_results(results: dict, workdir: WorkDir) -> None:
