@@ -61,6 +61,11 @@ def record_file(scene: str, member: Member, epochs: int) -> Path:
     return _common.RESULTS / "runs" / f"study-{scene}-{member.name}-e{epochs}.json"
 
 
+def parked_copy(parked: Path, scene: str, member: Member, epochs: int) -> Path:
+    """Where `sweep_all.py --park` keeps an unfinished member's newest checkpoint."""
+    return parked / f"study-{scene}-{member.name}-e{epochs}"
+
+
 def finished_members(members: Sequence[Member], scene: str, protocol: str, epochs: int,
                      folder: Path, published: bool) -> dict[Member, dict]:
     """The members with a test evaluation after `epochs`: in their work directory under

@@ -15,6 +15,11 @@ a short budget is a short training, not a truncated 200-epoch one; the learning 
 every 50 epochs as in the release (`--schedule paper`) or every epochs/4 (`--schedule
 compressed`, results/schedules.md). The claims count the freezing robot from --encounters
 (experiments/encounters.py's record) when it exists.
+
+A study longer than one sitting continues in the next one: `--park` copies the newest
+checkpoint of every unfinished member into <parked>/study-<scene>-<member>-e<epochs>/, to be
+committed; the runs layout on a machine without the member's work directory resumes from that
+copy, and with --publish the copy is deleted once the member's record is in results/runs/.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ import _common
 from _figures import (best_n_per_dataset, errors_against_n_per_seed, paired_gains,
                       sparse_gain_against_density)
 from _study import (evaluation_file, finished_members, format_claims, judge_claims,
-                    record_file, train_members)
+                    parked_copy, record_file, train_members)
 
 from gst_jax import cli, data
 from gst_jax.config import (CROWD_SCENES, DETECTION, SCHEDULES, DataConfig, ModelConfig,
@@ -60,6 +65,12 @@ def main(argv: list[str] | None = None) -> None:
                         help="runs layout: members trained at once, a core each (default: 1)")
     parser.add_argument("--tabulate", action="store_true",
                         help="runs layout: train nothing, tabulate the evaluated members")
+    parser.add_argument("--park", action="store_true",
+                        help="runs layout: train nothing, copy the newest checkpoint of each "
+                             "unfinished member into --parked (commit it to continue in "
+                             "another sitting)")
+    parser.add_argument("--parked", type=Path, default=_common.PARKED,
+                        help=f"folder of parked members (default: {_common.PARKED})")
     parser.add_argument("--encounters", type=Path, default=None,
                         help="experiments/encounters.py's record, for the freezing claim "
                              "(default: results/encounters.json)")
@@ -71,13 +82,17 @@ def main(argv: list[str] | None = None) -> None:
                         help="runs layout: write the tables, figures and members' records into "
                              "results/ (a record there counts as a finished member)")
     args = parser.parse_args(argv)
-    if args.layout == "sweep" and (args.publish or args.tabulate):
-        parser.error("--publish and --tabulate need --layout runs")
+    if args.layout == "sweep" and (args.publish or args.tabulate or args.park):
+        parser.error("--publish, --tabulate and --park need --layout runs")
 
     members = plan_members(args.edge_heads, args.fully_detected_only,
                            [args.seed + i for i in range(args.seeds)])
     train_config = TrainConfig(epochs=args.epochs, seed=args.seed, schedule=args.schedule,
                                max_train_windows=args.max_train_windows)
+    if args.park:
+        for scene in args.scenes:
+            park_members(args, scene, members)
+        return
     all_results = []
     for scene in args.scenes:
         print(f"== {scene}", flush=True)
@@ -111,6 +126,10 @@ def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: Train
     if not args.tabulate:
         done = finished()
         waiting = [m for m in members if m not in done]
+        for member in waiting:
+            parked = parked_copy(args.parked, scene, member, args.epochs)
+            if parked.is_dir() and not (folder / member.name / "checkpoints").is_dir():
+                shutil.copytree(parked, folder / member.name)    # another sitting's member
         failed = train_members(waiting, scene, folder, args.workers, protocol=args.protocol,
                                epochs=args.epochs, schedule=args.schedule,
                                eval_samples=args.eval_samples,
@@ -125,11 +144,24 @@ def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: Train
             if not record_file(scene, member, args.epochs).is_file():
                 shutil.copy2(evaluation_file(folder / member.name, scene, args.protocol,
                                              args.epochs), record_file(scene, member, args.epochs))
+            shutil.rmtree(parked_copy(args.parked, scene, member, args.epochs),
+                          ignore_errors=True)
     evaluated = [m for m in members if m in records]
     test_set = data.load_split(data_config, "test", ModelConfig().grid)
     results = summarize([records[m] for m in evaluated], evaluated, data_config, train_config,
                         args.eval_samples, test_set)
     return {**results, "waiting": [m.name for m in members if m not in records]}
+
+
+def park_members(args, scene: str, members) -> None:
+    """Copy the newest checkpoint of each of the scene's unfinished members to --parked."""
+    folder = args.workdir / scene
+    done = finished_members(members, scene, args.protocol, args.epochs, folder,
+                            published=args.publish)
+    for member in members:
+        if member not in done and (epoch := _common.park(
+                folder / member.name, parked_copy(args.parked, scene, member, args.epochs))):
+            print(f"parked {scene} {member.name} after epoch {epoch}", flush=True)
 
 
 def write_study(all_results: list[dict], judged: dict, out: Path) -> None:

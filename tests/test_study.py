@@ -123,6 +123,44 @@ def test_the_study_trains_its_missing_members_as_runs_and_publishes_their_record
         sweep_all.main([*argv, "--tabulate", "--layout", "sweep"])
 
 
+def test_an_unfinished_member_parks_and_continues_from_its_parked_copy(tmp_path, monkeypatch):
+    """--park keeps a stopped member's newest checkpoint; where its work directory is gone (the
+    next sitting's fresh checkout) the study resumes from that copy, which goes once the
+    member's record is published."""
+    folder = tmp_path / "study" / "eth" / "n4-partial-seed1000"
+    for epoch in (5, 10):
+        (folder / "checkpoints" / str(epoch)).mkdir(parents=True)
+        (folder / "checkpoints" / str(epoch) / "state").write_text(f"weights after {epoch}")
+    (folder / "checkpoints" / "checksums.json").write_text("{}")
+    (folder / "config.json").write_text("{}")
+    parked = tmp_path / "parked"
+    argv = ["--scenes", "eth", "--edge-heads", "4", "--seeds", "1", "--fully-detected-only",
+            "partial", "--layout", "runs", "--encounters", str(tmp_path / "none.json"),
+            "--workdir", str(tmp_path / "study"), "--parked", str(parked)]
+    sweep_all.main([*argv, "--park"])
+    copy = parked / "study-eth-n4-partial-seed1000-e200"
+    assert sorted(str(p.relative_to(copy)) for p in copy.rglob("*") if p.is_file()) == [
+        "checkpoints/10/state", "checkpoints/checksums.json", "config.json"]
+    shutil.rmtree(tmp_path / "study")
+
+    def resumes(member, scene, protocol, epochs, schedule, eval_samples, max_train_windows,
+                workdir):
+        state = workdir / "checkpoints" / "10" / "state"
+        path = _study.evaluation_file(workdir, scene, protocol, epochs)
+        record = json.dumps(_evaluation(member.edge_heads, 1.1))
+        return [[sys.executable, "-c",
+                 f"import pathlib; assert pathlib.Path({str(state)!r}).read_text() == "
+                 f"'weights after 10'; p = pathlib.Path({str(path)!r}); "
+                 f"p.parent.mkdir(parents=True); p.write_text({record!r})"]]
+
+    monkeypatch.setattr(_study, "member_commands", resumes)
+    monkeypatch.setattr(_common, "RESULTS", tmp_path / "results")
+    (tmp_path / "results" / "runs").mkdir(parents=True)
+    sweep_all.main([*argv, "--publish"])
+    assert (tmp_path / "results" / "runs" / "study-eth-n4-partial-seed1000-e200.json").is_file()
+    assert not copy.exists()
+
+
 def test_the_published_study_is_what_its_command_makes_of_the_records(tmp_path, monkeypatch):
     """results/study.md, remade from a copy of the records in results/runs/ and of
     results/encounters.json by the command docs/reproducing.md names."""
