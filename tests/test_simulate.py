@@ -147,6 +147,69 @@ def test_the_encounter_study_pairs_each_sparse_member_with_its_full_connection(t
     assert paired_difference(full, full) == (0.0, 0.0, 0.0)
 
 
+def _froze_in(flags: str) -> dict:
+    """A model's summary over episodes that froze where `flags` says '1'."""
+    from gst_jax.simulate.encounters import summarize
+    rows = [{"freezing_or_u_turn": f == "1", "frozen": f == "1", "u_turn": False,
+             "collided": False, "arrived": f == "0", "time_to_goal_s": 9.0, "progress": 1.0,
+             "path_length_ratio": 1.1} for f in flags]
+    return {**summarize(rows), "compile_s": 1.0, "run_s": 1.0, "episodes_per_s": 4.0}, rows
+
+
+def test_the_members_of_an_earlier_record_keep_their_rates_and_pairs(tmp_path, monkeypatch):
+    """experiments/encounters.py where the work directories of earlier members are gone:
+    they keep their published rates and pairs; a new member pairs episode by episode with a
+    full connection recorded per episode, and with one whose episodes were lost through the
+    widest interval the two rates allow."""
+    import encounters
+
+    study = tmp_path / "eth"
+    for name in ("n4-partial-seed1001", "n16-partial-seed1000"):
+        (study / name / "eval").mkdir(parents=True)
+        (study / name / "eval" / "test.json").write_text("{}")
+    earlier = {"n=F partial 1000": "0110", "n=F partial 1001": "1100", "n=4 partial 1000": "0100"}
+    out = tmp_path / "out"
+    out.mkdir()
+    published_pair = {"sparse": "n=4 partial 1000", "full": "n=F partial 1000",
+                      "freezing_difference": [-0.25, -0.7, 0.2]}
+    (out / "encounters.json").write_text(json.dumps({
+        "episodes": 4, "seed": 0, "scene": "eth", "members": list(earlier),
+        "models": {label: _froze_in(flags)[0] for label, flags in
+                   {"constant velocity": "0000", **earlier, "crowd_d": "0000"}.items()},
+        "pairs": [published_pair], "froze": {"n=F partial 1001": "1100"}}))
+    now = {"constant velocity": "0001", "n=4 partial 1001": "1000", "n=16 partial 1000": "1010",
+           "crowd_d": "0011"}
+
+    def simulated(models, count, out, **_):
+        assert count == 4 and [label for label, _ in models] == list(now)
+        return ({label: _froze_in(now[label])[0] for label, _ in models},
+                {label: _froze_in(now[label])[1] for label, _ in models})
+
+    monkeypatch.setattr(encounters, "load_model", lambda spec: spec)
+    monkeypatch.setattr(encounters, "step_models", lambda runs: [(None, runs[0])])
+    monkeypatch.setattr(encounters, "time_grid", lambda runs: None)
+    monkeypatch.setattr(encounters, "run_encounter_study", simulated)
+    encounters.main(["--study", str(study), "--episodes", "4", "--workdir", str(out)])
+
+    record = json.loads((out / "encounters.json").read_text())
+    assert record["members"] == ["n=F partial 1000", "n=F partial 1001", "n=4 partial 1000",
+                                 "n=4 partial 1001", "n=16 partial 1000"]
+    assert list(record["models"]) == ["constant velocity", *record["members"], "crowd_d"]
+    assert record["models"]["n=F partial 1000"]["freezing_or_u_turn"][0] == 0.5
+    assert record["froze"] == {"n=4 partial 1001": "1000", "n=16 partial 1000": "1010",
+                               "n=F partial 1001": "1100"}
+    pairs = {pair["sparse"]: pair for pair in record["pairs"]}
+    assert pairs["n=4 partial 1000"] == published_pair
+    assert pairs["n=4 partial 1001"]["freezing_difference"] == pytest.approx(
+        encounters.paired_difference(np.array([1, 0, 0, 0], bool), np.array([1, 1, 0, 0], bool)))
+    lost = pairs["n=16 partial 1000"]       # 2 froze against 2, at most 0 of them shared
+    assert lost["paired"] is False and lost["freezing_difference"] == pytest.approx(
+        encounters.paired_difference(np.array([1, 1, 0, 0], bool), np.array([0, 0, 1, 1], bool)))
+    assert "| n=16 partial 1000 | n=F partial 1000 | +0.000 [-0.980, +0.980] * |" in (
+        out / "encounters.md").read_text()
+    assert (out / "encounters.png").stat().st_size > 5_000
+
+
 def test_a_models_stored_encounters_are_read_back_not_simulated_again(tmp_path):
     """run_encounter_study(stored=...): the first call simulates and keeps the measures; the
     second reads them (a model that cannot run proves nothing was simulated); other episodes

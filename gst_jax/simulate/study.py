@@ -125,6 +125,11 @@ def run_encounter_study(models: Sequence[tuple[str, StepModel]], count: int, out
     (out / "encounters.json").write_text(json.dumps(
         {"episodes": count, "seed": seed, "step_s": grid.step_s, "models": summaries},
         indent=1) + "\n")
-    encounter_rates(summaries, out / "encounters.png",
-                    f"{count} random encounters (seed {seed}), 95% intervals")
+    draw_encounter_rates(summaries, count, seed, out)
     return summaries, rows
+
+
+def draw_encounter_rates(summaries: Mapping[str, dict], count: int, seed: int, out: Path) -> Path:
+    """out/encounters.png: per model, its rates of freezing and of collisions."""
+    return encounter_rates(dict(summaries), out / "encounters.png",
+                           f"{count} random encounters (seed {seed}), 95% intervals")
