@@ -111,9 +111,11 @@ class TrainStep:
 
     def place(self, tree: Any) -> Any:
         """A state, key or hparams tree on the devices: copied to each, or (sweep members,
-        leading axis) split over them. Without devices, unchanged."""
+        leading axis) split over them. Without devices, committed to the default device, as
+        a restored checkpoint is: a fresh state and a restored one then share one compiled
+        step (uncommitted, a run resumed in the same process compiled its step again)."""
         if self.devices is None:
-            return tree
+            return jax.device_put(tree, jax.devices()[0])
         return (self.devices.split if self.members else self.devices.replicate)(tree)
 
     @property
