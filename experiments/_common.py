@@ -60,9 +60,10 @@ def latest_checkpoint(workdir: Path) -> int | None:
 
 
 def park(workdir: Path, destination: Path) -> int | None:
-    """Copy the run's config and newest checkpoint (with its checksums) to `destination`, a
-    work directory from which training continues elsewhere; returns the checkpoint's epoch,
-    or None before the first checkpoint."""
+    """Copy the run's config, newest checkpoint (with its checksums) and evaluations to
+    `destination`, a work directory from which training (or, for a finished run, what uses
+    its model) continues elsewhere; returns the checkpoint's epoch, or None before the first
+    checkpoint."""
     epoch = latest_checkpoint(workdir)
     if epoch is None:
         return None
@@ -71,6 +72,8 @@ def park(workdir: Path, destination: Path) -> int | None:
     shutil.copytree(source / "checkpoints" / str(epoch), destination / "checkpoints" / str(epoch))
     shutil.copy2(source / "checkpoints" / "checksums.json", destination / "checkpoints")
     shutil.copy2(source / "config.json", destination / "config.json")
+    if (source / "eval").is_dir():
+        shutil.copytree(source / "eval", destination / "eval")
     return epoch
 
 

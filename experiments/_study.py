@@ -66,6 +66,11 @@ def parked_copy(parked: Path, scene: str, member: Member, epochs: int) -> Path:
     return parked / f"study-{scene}-{member.name}-e{epochs}"
 
 
+def encounter_label(member: Member) -> str:
+    """The member's name in experiments/encounters.py's record: 'n=F partial 1000'."""
+    return f"n={member.edge_heads or 'F'} {member.detection} {member.seed}"
+
+
 def finished_members(members: Sequence[Member], scene: str, protocol: str, epochs: int,
                      folder: Path, published: bool) -> dict[Member, dict]:
     """The members with a test evaluation after `epochs`: in their work directory under

@@ -29,7 +29,9 @@ from pathlib import Path
 
 import numpy as np
 from _common import add_results_flags, results_folder
+from _study import encounter_label
 
+from gst_jax.config import Member
 from gst_jax.runs import load_model
 from gst_jax.simulate.encounters import format_encounters
 from gst_jax.simulate.loop import constant_velocity_model
@@ -47,8 +49,8 @@ def members(study: Path) -> dict[str, Path]:
         match = MEMBER.match(workdir.name)
         if match and workdir.is_dir() and any((workdir / "eval").glob("*.json")):
             n, mode, seed = match.groups()
-            found[(int(n), mode, int(seed))] = (f"n={n if n != '0' else 'F'} {mode} {seed}",
-                                                workdir)
+            member = Member(int(n), mode == "full", int(seed))
+            found[(member.edge_heads, mode, member.seed)] = (encounter_label(member), workdir)
     return dict(found[key] for key in sorted(found))
 
 

@@ -17,9 +17,11 @@ compressed`, results/schedules.md). The claims count the freezing robot from --e
 (experiments/encounters.py's record) when it exists.
 
 A study longer than one sitting continues in the next one: `--park` copies the newest
-checkpoint of every unfinished member into <parked>/study-<scene>-<member>-e<epochs>/, to be
-committed; the runs layout on a machine without the member's work directory resumes from that
-copy, and with --publish the copy is deleted once the member's record is in results/runs/.
+checkpoint of every unfinished member, and of every finished one that the encounter record
+lacks, into <parked>/study-<scene>-<member>-e<epochs>/, to be committed; the runs layout on a
+machine without the member's work directory restores it from that copy (and resumes it if
+unfinished), and with --publish the copy is deleted once the member's record is in
+results/runs/.
 """
 
 from __future__ import annotations
@@ -32,8 +34,8 @@ from pathlib import Path
 import _common
 from _figures import (best_n_per_dataset, errors_against_n_per_seed, paired_gains,
                       sparse_gain_against_density)
-from _study import (evaluation_file, finished_members, format_claims, judge_claims,
-                    parked_copy, record_file, train_members)
+from _study import (encounter_label, evaluation_file, finished_members, format_claims,
+                    judge_claims, parked_copy, record_file, train_members)
 
 from gst_jax import cli, data
 from gst_jax.config import (CROWD_SCENES, DETECTION, SCHEDULES, DataConfig, ModelConfig,
@@ -67,8 +69,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="runs layout: train nothing, tabulate the evaluated members")
     parser.add_argument("--park", action="store_true",
                         help="runs layout: train nothing, copy the newest checkpoint of each "
-                             "unfinished member into --parked (commit it to continue in "
-                             "another sitting)")
+                             "unfinished member, and of each finished one that --encounters "
+                             "lacks, into --parked (commit it to continue in another sitting)")
     parser.add_argument("--parked", type=Path, default=_common.PARKED,
                         help=f"folder of parked members (default: {_common.PARKED})")
     parser.add_argument("--encounters", type=Path, default=None,
@@ -106,10 +108,7 @@ def main(argv: list[str] | None = None) -> None:
             all_results.append(results)
     if not all_results:
         raise SystemExit("no member has finished: nothing to tabulate")
-    encounters_file = args.encounters or _common.RESULTS / "encounters.json"
-    encounters = (json.loads(encounters_file.read_text()) if encounters_file.is_file()
-                  else None)
-    write_study(all_results, judge_claims(all_results, encounters),
+    write_study(all_results, judge_claims(all_results, read_encounters(args) or None),
                 _common.RESULTS if args.publish else args.workdir)
 
 
@@ -123,13 +122,13 @@ def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: Train
         return finished_members(members, scene, args.protocol, args.epochs, folder,
                                 published=args.publish)
 
+    for member in members:
+        parked = parked_copy(args.parked, scene, member, args.epochs)
+        if parked.is_dir() and not (folder / member.name / "checkpoints").is_dir():
+            shutil.copytree(parked, folder / member.name, dirs_exist_ok=True)  # another sitting's
     if not args.tabulate:
         done = finished()
         waiting = [m for m in members if m not in done]
-        for member in waiting:
-            parked = parked_copy(args.parked, scene, member, args.epochs)
-            if parked.is_dir() and not (folder / member.name / "checkpoints").is_dir():
-                shutil.copytree(parked, folder / member.name)    # another sitting's member
         failed = train_members(waiting, scene, folder, args.workers, protocol=args.protocol,
                                epochs=args.epochs, schedule=args.schedule,
                                eval_samples=args.eval_samples,
@@ -154,14 +153,27 @@ def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: Train
 
 
 def park_members(args, scene: str, members) -> None:
-    """Copy the newest checkpoint of each of the scene's unfinished members to --parked."""
+    """Copy the newest checkpoint of each of the scene's unfinished members, and of each
+    finished one that the encounter record lacks (experiments/encounters.py simulates it), to
+    --parked."""
     folder = args.workdir / scene
     done = finished_members(members, scene, args.protocol, args.epochs, folder,
                             published=args.publish)
+    encountered = read_encounters(args)
+    simulated = (encountered.get("members", []) if encountered.get("scene") == scene else [])
     for member in members:
-        if member not in done and (epoch := _common.park(
-                folder / member.name, parked_copy(args.parked, scene, member, args.epochs))):
-            print(f"parked {scene} {member.name} after epoch {epoch}", flush=True)
+        if member in done and encounter_label(member) in simulated:
+            continue
+        if epoch := _common.park(folder / member.name,
+                                 parked_copy(args.parked, scene, member, args.epochs)):
+            print(f"parked {scene} {member.name} after epoch {epoch}"
+                  + (" (finished, for its encounters)" if member in done else ""), flush=True)
+
+
+def read_encounters(args) -> dict:
+    """experiments/encounters.py's record (--encounters), {} when there is none."""
+    path = args.encounters or _common.RESULTS / "encounters.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def write_study(all_results: list[dict], judged: dict, out: Path) -> None:

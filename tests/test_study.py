@@ -11,6 +11,7 @@ from pathlib import Path
 
 import _common
 import _study
+import encounters as encounters_script
 import pytest
 import sweep_all
 
@@ -124,41 +125,59 @@ def test_the_study_trains_its_missing_members_as_runs_and_publishes_their_record
 
 
 def test_an_unfinished_member_parks_and_continues_from_its_parked_copy(tmp_path, monkeypatch):
-    """--park keeps a stopped member's newest checkpoint; where its work directory is gone (the
-    next sitting's fresh checkout) the study resumes from that copy, which goes once the
-    member's record is published."""
-    folder = tmp_path / "study" / "eth" / "n4-partial-seed1000"
-    for epoch in (5, 10):
-        (folder / "checkpoints" / str(epoch)).mkdir(parents=True)
-        (folder / "checkpoints" / str(epoch) / "state").write_text(f"weights after {epoch}")
-    (folder / "checkpoints" / "checksums.json").write_text("{}")
-    (folder / "config.json").write_text("{}")
+    """--park keeps a stopped member's newest checkpoint, and a finished member's until the
+    encounter record has it; where their work directories are gone (the next sitting's fresh
+    checkout) the study restores them from those copies and resumes the unfinished one, and a
+    copy goes once its member's record is published."""
+    study = tmp_path / "study" / "eth"
+    for name, epochs in (("n4-partial-seed1000", (5, 10)), ("n4-partial-seed1001", (200,))):
+        for epoch in epochs:
+            (study / name / "checkpoints" / str(epoch)).mkdir(parents=True)
+            (study / name / "checkpoints" / str(epoch) / "state").write_text(f"weights {epoch}")
+        (study / name / "checkpoints" / "checksums.json").write_text("{}")
+        (study / name / "config.json").write_text("{}")
+    finished = _study.evaluation_file(study / "n4-partial-seed1001", "eth", "paper", 200)
+    finished.parent.mkdir()
+    finished.write_text(json.dumps(_evaluation(4, 1.2)))
     parked = tmp_path / "parked"
-    argv = ["--scenes", "eth", "--edge-heads", "4", "--seeds", "1", "--fully-detected-only",
-            "partial", "--layout", "runs", "--encounters", str(tmp_path / "none.json"),
+    encounters = tmp_path / "encounters.json"
+    argv = ["--scenes", "eth", "--edge-heads", "4", "--seeds", "2", "--fully-detected-only",
+            "partial", "--layout", "runs", "--encounters", str(encounters),
             "--workdir", str(tmp_path / "study"), "--parked", str(parked)]
+    encounters.write_text(json.dumps({"scene": "eth", "members": ["n=4 partial 1001"]}))
     sweep_all.main([*argv, "--park"])
-    copy = parked / "study-eth-n4-partial-seed1000-e200"
-    assert sorted(str(p.relative_to(copy)) for p in copy.rglob("*") if p.is_file()) == [
-        "checkpoints/10/state", "checkpoints/checksums.json", "config.json"]
+    assert [p.name for p in parked.iterdir()] == ["study-eth-n4-partial-seed1000-e200"]
+    encounters.unlink()      # the finished member's encounters not simulated yet
+    sweep_all.main([*argv, "--park"])
+    copies = {name: parked / f"study-eth-{name}-e200"
+              for name in ("n4-partial-seed1000", "n4-partial-seed1001")}
+    assert {name: sorted(str(p.relative_to(copy)) for p in copy.rglob("*") if p.is_file())
+            for name, copy in copies.items()} == {
+        "n4-partial-seed1000": ["checkpoints/10/state", "checkpoints/checksums.json",
+                                "config.json"],
+        "n4-partial-seed1001": ["checkpoints/200/state", "checkpoints/checksums.json",
+                                "config.json", "eval/eth-paper-test-e200.json"]}
     shutil.rmtree(tmp_path / "study")
 
     def resumes(member, scene, protocol, epochs, schedule, eval_samples, max_train_windows,
                 workdir):
+        assert member.seed == 1000      # the finished member is restored, not trained
         state = workdir / "checkpoints" / "10" / "state"
         path = _study.evaluation_file(workdir, scene, protocol, epochs)
         record = json.dumps(_evaluation(member.edge_heads, 1.1))
         return [[sys.executable, "-c",
                  f"import pathlib; assert pathlib.Path({str(state)!r}).read_text() == "
-                 f"'weights after 10'; p = pathlib.Path({str(path)!r}); "
+                 f"'weights 10'; p = pathlib.Path({str(path)!r}); "
                  f"p.parent.mkdir(parents=True); p.write_text({record!r})"]]
 
     monkeypatch.setattr(_study, "member_commands", resumes)
     monkeypatch.setattr(_common, "RESULTS", tmp_path / "results")
     (tmp_path / "results" / "runs").mkdir(parents=True)
     sweep_all.main([*argv, "--publish"])
-    assert (tmp_path / "results" / "runs" / "study-eth-n4-partial-seed1000-e200.json").is_file()
-    assert not copy.exists()
+    for name, copy in copies.items():
+        assert (tmp_path / "results" / "runs" / f"study-eth-{name}-e200.json").is_file()
+        assert not copy.exists()
+    assert list(encounters_script.members(study)) == ["n=4 partial 1000", "n=4 partial 1001"]
 
 
 def test_the_published_study_is_what_its_command_makes_of_the_records(tmp_path, monkeypatch):
