@@ -16,6 +16,7 @@ from gst_jax.data import SceneBatch, node_mask_from_positions
 from gst_jax.gumbel import gumbel_softmax, sample_gumbel
 from gst_jax.model import Controls, init_params
 from gst_jax.model.layers import Dropout
+from gst_jax.model.selector import group_to_head, head_totals
 from gst_jax.rollout import RolloutNoise, rollout, rollout_with_noise
 from gst_jax.testing.release import batch_loss
 
@@ -136,6 +137,18 @@ def test_fully_masked_attention_row_is_zero_not_nan():
     grads = jax.grad(lambda s: graph.float_mask_attention_weights(s, mask)[..., 0].sum())(scores)
     assert np.all(np.isfinite(grads))
 
+
+
+@pytest.mark.parametrize("num_edge_heads", [1, 2, 4, 8, 16])
+def test_head_totals_sum_each_heads_groups_along_any_axis(num_edge_heads):
+    # Each group gets the total of the G/n consecutive groups of its head, which is what the
+    # (G, G) group-to-head matrix does when contracted in and back out.
+    per_group = jax.random.normal(jax.random.key(num_edge_heads), (3, 16, 5))
+    heads = group_to_head(16, jnp.asarray(num_edge_heads))
+    expected = jnp.einsum("agb,gh,kh->akb", per_group, heads, heads)
+    totals = jax.jit(head_totals, static_argnums=2)(per_group, jnp.asarray(num_edge_heads), 1)
+    np.testing.assert_allclose(totals, expected, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(head_totals(per_group, jnp.asarray(num_edge_heads), -2), totals)
 
 # --- the whole model -----------------------------------------------------------------------
 

@@ -209,7 +209,7 @@ class EdgeSelector(nn.Module):
         scale = jnp.sqrt(head_dim.astype(x.dtype))
         if candidates is not None:
             hidden = _candidate_hidden(grouped(node_part), grouped(target_part),
-                                       grouped(edge_basis), c, valid_edges, heads, scale,
+                                       grouped(edge_basis), c, valid_edges, n, scale,
                                        with_ghost(candidates, x.shape[-2]))
         else:
             pq, pk, pv = grouped(node_part)                                      # (..., L, G, w)
@@ -224,8 +224,7 @@ class EdgeSelector(nn.Module):
             group_scores = (jnp.einsum("...lgc,...mgc->...glm", pq, pk)[..., None, :, :, :]
                             + jnp.einsum("...igls,...ims->...iglm", by_target, c)
                             + jnp.einsum("...ilr,...igrm->...iglm", c, bq_pk))  # (..., N, G, L, L)
-            group_weights, mixed_coefficients = _attend(group_scores, c, valid_edges, heads,
-                                                        scale)
+            group_weights, mixed_coefficients = _attend(group_scores, c, valid_edges, n, scale)
             # The values' basis B_i is the target's own part and R - 1 parts shared by every
             # target (and sample): contracted with the shared parts in one product for all edges.
             own_values = grouped(target_part)[2]                                 # (..., N, G, w)
@@ -253,20 +252,43 @@ class EdgeSelector(nn.Module):
         return scatter_neighbours(edge_probs, candidates[..., None, :], x.shape[-2])
 
 
-def _attend(group_scores: jax.Array, c: jax.Array, valid_edges: jax.Array, heads: jax.Array,
-            scale: jax.Array) -> tuple[jax.Array, jax.Array]:
+def head_totals(per_group: jax.Array, num_edge_heads: jax.Array, axis: int) -> jax.Array:
+    """Each group's head total along `axis` (G groups): the sum over the G/n consecutive groups
+    of its head, the same for every group of a head.
+
+    G and n are powers of two (G divides the 128-wide selector, n divides G), so the totals
+    are a butterfly: at stride s = 1, 2, ... < G/n each group adds the partial total of group
+    g XOR s. Every level is an elementwise add of a static permutation of the G axis; a
+    contraction with a (G, G) group-to-head matrix did the same on a CPU in several times the
+    time, most of it transposing G to the end and back. With n = G nothing is added.
+    """
+    axis = axis % per_group.ndim
+    num_groups = per_group.shape[axis]
+    groups_per_head = num_groups // jnp.maximum(num_edge_heads, 1)
+    total, stride = per_group, 1
+    while stride < num_groups:
+        blocks = total.shape[:axis] + (num_groups // (2 * stride), 2, stride) + total.shape[axis + 1:]
+        partner = jnp.flip(total.reshape(blocks), axis=axis + 1).reshape(total.shape)
+        total = total + jnp.where(stride < groups_per_head, partner, 0.0)
+        stride *= 2
+    return total
+
+
+def _attend(group_scores: jax.Array, c: jax.Array, valid_edges: jax.Array,
+            num_edge_heads: jax.Array, scale: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The attention among each target's neighbours (docs/MODEL.md 2.1 steps 4-5), per group:
     group_scores (..., N, G, L, L), c (..., N, L, R), valid_edges (..., N, L). Returns the
-    weights (..., N, G, L, L) and the coefficients they mix, sum_m w_ilm c~_im (..., N, G, L, R)."""
-    scores = jnp.einsum("...glm,gh->...hlm", group_scores, heads) / scale
+    weights (..., N, G, L, L), each group its head's, and the coefficients they mix,
+    sum_m w_ilm c~_im (..., N, G, L, R)."""
+    scores = head_totals(group_scores, num_edge_heads, axis=-3) / scale
     edge_pair_mask = valid_edges[..., None, :, None] * valid_edges[..., None, None, :]
-    weights = float_mask_attention_weights(scores, edge_pair_mask)               # (..., N, H, L, L)
-    group_weights = jnp.einsum("...hlm,gh->...glm", weights, heads)
+    group_weights = float_mask_attention_weights(scores, edge_pair_mask)         # (..., N, G, L, L)
     return group_weights, jnp.einsum("...glm,...ms->...gls", group_weights, c)
 
 
 def _candidate_hidden(node, target, shared, c: jax.Array, valid_edges: jax.Array,
-                      heads: jax.Array, scale: jax.Array, neighbours: jax.Array) -> jax.Array:
+                      num_edge_heads: jax.Array, scale: jax.Array, neighbours: jax.Array
+                      ) -> jax.Array:
     """`EdgeSelector`'s attention and value mixture over each target's candidates: the exact
     model's maths with l, m over the K+1 neighbours of `neighbours` (..., N, K+1) (candidates,
     then the ghost) and c, valid_edges gathered likewise. node (P_q, P_k, P_v) (..., N+1, G, w)
@@ -316,7 +338,8 @@ def _candidate_hidden(node, target, shared, c: jax.Array, valid_edges: jax.Array
     by_target = pq_bk + jnp.einsum("...glr,...grs->...gls", c, bq_bk)
     group_scores = (node_scores + jnp.einsum("...gls,...gms->...glm", by_target, c)
                     + jnp.einsum("...glr,...grm->...glm", c, bq_pk))
-    group_weights, mixed = _attend(group_scores, c[..., 0, :, :], valid_edges, heads, scale)
+    group_weights, mixed = _attend(group_scores, c[..., 0, :, :], valid_edges, num_edge_heads,
+                                   scale)
     hidden = (jnp.einsum("...glm,...gmc->...glc", group_weights, per_target(pv))
               + sum(mixed[..., s, None] * (tv[..., None, :] if s == 0 else ev[s - 1, :, None, :])
                     for s in range(mixed.shape[-1])))                           # (..., N, G, L, w)
