@@ -138,7 +138,6 @@ def test_fully_masked_attention_row_is_zero_not_nan():
     assert np.all(np.isfinite(grads))
 
 
-
 @pytest.mark.parametrize("num_edge_heads", [1, 2, 4, 8, 16])
 def test_head_totals_sum_each_heads_groups_along_any_axis(num_edge_heads):
     # Each group gets the total of the G/n consecutive groups of its head, which is what the
@@ -149,6 +148,7 @@ def test_head_totals_sum_each_heads_groups_along_any_axis(num_edge_heads):
     totals = jax.jit(head_totals, static_argnums=2)(per_group, jnp.asarray(num_edge_heads), 1)
     np.testing.assert_allclose(totals, expected, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(head_totals(per_group, jnp.asarray(num_edge_heads), -2), totals)
+
 
 # --- the whole model -----------------------------------------------------------------------
 
