@@ -16,6 +16,16 @@ The layers, bottom up: `data` (numpy), `graph` and `gumbel`, `model`, `rollout`,
 """
 
 import importlib
+import os
+
+# XLA:CPU in jaxlib 0.10 hands elementwise and reduction fusions to YNNPACK on some CPUs (AMD
+# EPYC), and one of them segfaults in its transpose: a sweep over 4 host devices died in its
+# first step. Its matrix products stay, being the fast part (docs/benchmarks.md, "Conditions").
+# XLA reads the flag when jax starts its CPU backend, so it is set before any of our modules
+# computes; a user's own setting of the flag wins.
+_YNNPACK_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
+if _YNNPACK_FLAG not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_YNNPACK_FLAG}=dot".strip()
 
 # Each public name and the module that defines it; a module is imported when its name is
 # first used, so that `import gst_jax.data` (numpy only) or a command that prints statistics

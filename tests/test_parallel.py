@@ -175,3 +175,40 @@ def test_two_processes_joined_by_jax_distributed_train_as_one(tmp_path):
     flat = [np.concatenate([np.ravel(leaf) for leaf in jax.tree.leaves(load_run(path).params)])
             for path in (tmp_path / "two", one)]
     assert np.linalg.norm(flat[0] - flat[1]) <= 1e-4 * np.linalg.norm(flat[1])
+
+
+# Elementwise and reduction ops that jaxlib 0.10's XLA:CPU gives YNNPACK on an AMD EPYC: one
+# such fusion segfaulted the 4-device sweep above (gst_jax/__init__.py).
+YNNPACK_PROBE = textwrap.dedent("""
+    import os, sys
+    import jax, jax.numpy as jnp
+    if sys.argv[1] == "gst_jax":
+        import gst_jax  # noqa: F401
+    def softmax_total(a, b, scale):
+        x = (a + b) * scale
+        return jnp.exp(x - x.max(-1, keepdims=True)).sum(-1)
+    shape = (1, 4, 8, 2, 9, 9)
+    compiled = jax.jit(softmax_total).lower(jnp.ones(shape), jnp.ones(shape), 2.0).compile()
+    print(compiled.as_text().count("__ynn_fusion"))
+    print(os.environ["XLA_FLAGS"])
+""")
+
+
+def _ynnpack_fusions(*, importing: str, xla_flags: str) -> tuple[int, str]:
+    """(YNNPACK fusions in YNNPACK_PROBE's program, XLA_FLAGS as the process ends)."""
+    environment = {**os.environ, "XLA_FLAGS": xla_flags}
+    output = subprocess.run([sys.executable, "-c", YNNPACK_PROBE, importing], env=environment,
+                            capture_output=True, text=True, check=True).stdout.split("\n")
+    return int(output[0]), output[1]
+
+
+def test_importing_gst_jax_keeps_ynnpack_to_matrix_products_unless_told_otherwise():
+    # XLA_FLAGS as the tests have it, less the YNNPACK setting that importing gst_jax added.
+    flags = " ".join(flag for flag in os.environ.get("XLA_FLAGS", "").split()
+                     if "ynn_fusion_type" not in flag)
+    fusions, set_flags = _ynnpack_fusions(importing="gst_jax", xla_flags=flags)
+    assert fusions == 0 and set_flags.endswith("--xla_cpu_experimental_ynn_fusion_type=dot")
+    # A user's own setting wins (where this CPU gets any YNNPACK fusion, it gets it back).
+    users = f"{flags} --xla_cpu_experimental_ynn_fusion_type=eltwise,reduce"
+    assert _ynnpack_fusions(importing="gst_jax", xla_flags=users) == (
+        _ynnpack_fusions(importing="jax alone", xla_flags=users)[0], users)
