@@ -13,9 +13,9 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from gst_jax.config import (DETECTION, EDGE_HEAD_CHOICES, FINE_TUNING, PROTOCOLS, SCENES,
-                            SCHEDULES, TEMPORAL_MODELS, DataConfig, ModelConfig, TimeGrid,
-                            TrainConfig)
+from gst_jax.config import (ATTENTION_KINDS, DETECTION, EDGE_HEAD_CHOICES, FINE_TUNING,
+                            PROTOCOLS, SCENES, SCHEDULES, TEMPORAL_MODELS, DataConfig,
+                            ModelConfig, TimeGrid, TrainConfig)
 from gst_jax.data import data_name
 from gst_jax.data.protocols import bundled_or_local
 from gst_jax.data.readers import UNITS, parse_columns
@@ -228,6 +228,10 @@ def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool
                        help="each pedestrian's candidate neighbours: its K nearest at each step "
                             "(itself included), for crowds of hundreds; 0 = everyone, the exact "
                             "model (default: 0; docs/MODEL.md 2.4)")
+    group.add_argument("--attention", default=ModelConfig.attention, choices=ATTENTION_KINDS,
+                       help="release: the paper's attention (softmax over everyone, masked, "
+                            "renormalised; a row can underflow to zeros); masked: masked "
+                            "entries excluded before the softmax (default: release)")
     add_grid_flags(group)
 
 
@@ -383,6 +387,7 @@ def model_config(args: argparse.Namespace) -> ModelConfig:
                        output=args.output, temporal=args.temporal, node_dim=args.node_dim,
                        edge_dim=2 * args.node_dim, encoder_layers=args.encoder_layers,
                        lstm_hidden=args.lstm_dim, candidates=args.candidates,
+                       attention=args.attention,
                        **dataclasses.asdict(time_grid(args)))
 
 

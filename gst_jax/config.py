@@ -22,6 +22,10 @@ PROTOCOLS = ("paper", "paper-val", "loo")
 # lstm: the paper's masked LSTM; faster_lstm: gst_updated's (CrowdNav++), whose LSTM steps
 # through every observed step (masked inputs, no held state); tcn: the release's readout.
 TEMPORAL_MODELS = ("lstm", "faster_lstm", "tcn")
+# release: softmax over every entry, times the mask, renormalised (the paper's models; a row
+# whose masked entries dominate underflows to zeros); masked: masked entries at -inf before
+# the softmax (gst_jax.graph.ATTENTION_WEIGHTS).
+ATTENTION_KINDS = ("release", "masked")
 # Learning-rate and temperature schedules (gst_jax.training.schedules).
 SCHEDULES = ("paper", "compressed", "finetune")
 # What fine-tuning (`train --init MODEL`) changes unless told otherwise: a validation split to
@@ -143,6 +147,11 @@ class ModelConfig(_FromDict):
         step (itself included) and the ghost: the selector and the encoder's attention then
         grow as N k^2 and N k instead of N^3 and N^2. No parameter depends on it, so a model
         trained exactly can predict with candidates (`dataclasses.replace`) and vice versa.
+      attention: how the selector's and the encoder's attention and the edge probabilities
+        treat masked entries (ATTENTION_KINDS): 'release' (softmax over all, masked and
+        renormalised: the paper's models and parity) or 'masked' (masked entries excluded
+        before the softmax; no row underflows, and padding cannot change the output). No
+        parameter depends on it.
     """
 
     node_dim: int = 32
@@ -161,6 +170,7 @@ class ModelConfig(_FromDict):
     obs_len: int = TimeGrid.obs_len
     pred_len: int = TimeGrid.pred_len
     candidates: int = 0
+    attention: str = "release"
 
     def __post_init__(self):
         if self.node_dim % self.encoder_heads:
@@ -174,6 +184,9 @@ class ModelConfig(_FromDict):
         if self.temporal not in TEMPORAL_MODELS:
             raise ValueError(f"temporal model {self.temporal!r}: expected one of "
                              f"{', '.join(TEMPORAL_MODELS)}")
+        if self.attention not in ATTENTION_KINDS:
+            raise ValueError(f"attention {self.attention!r}: expected one of "
+                             f"{', '.join(ATTENTION_KINDS)}")
         if self.candidates < 0:
             raise ValueError(f"candidates must be 0 (every person) or more, got {self.candidates}")
 

@@ -13,6 +13,8 @@ from gst_jax.data.batch import SceneBatch
 
 # The release adds this to every normaliser so that fully masked rows give 0, not NaN.
 EPS = 1e-10
+# The smallest mask entry `masked_softmax_weights` takes the logarithm of.
+TINY = 1e-30
 
 
 def displacements(positions: jax.Array, node_mask: jax.Array) -> jax.Array:
@@ -49,10 +51,38 @@ def float_mask_attention_weights(scores: jax.Array, mask: jax.Array) -> jax.Arra
     return weights / (jnp.sum(weights, axis=-1, keepdims=True) + EPS)
 
 
-def masked_categorical(logits: jax.Array, mask: jax.Array) -> jax.Array:
+def masked_softmax_weights(scores: jax.Array, mask: jax.Array) -> jax.Array:
+    """The softmax over the entries the mask keeps: masked scores count as -inf, so a row
+    whose masked entries outscore its kept ones by any margin still sums to 1; a row with no
+    kept entry gives all zeros. For a mask of 0s and 1s it equals the release's
+    `float_mask_attention_weights` wherever that does not underflow. A fractional mask (a
+    soft Gumbel sample) weights the kept entries as the release does, softmax(s) m / sum,
+    computed as a softmax of s + log m, so that no row's normaliser can underflow however
+    small its mask is.
+
+    scores (..., L, S), mask broadcastable to it -> (..., L, S).
+    """
+    kept = jnp.broadcast_to(mask > 0, scores.shape)
+    # Below TINY a mask entry counts as TINY: log m's gradient 1/m stays finite.
+    logits = jnp.where(kept, scores + jnp.log(jnp.maximum(mask, TINY)), -jnp.inf)
+    # The row's largest kept logit, 0 for a row with none (whose exponentials are all masked).
+    top = jnp.max(logits, axis=-1, keepdims=True)
+    top = jax.lax.stop_gradient(jnp.where(jnp.isfinite(top), top, 0.0))
+    # The inner `where` keeps exp() (and its gradient) finite at masked entries; the largest
+    # entry is exp(0) = 1, so a row's total is 0 or at least 1.
+    weights = jnp.where(kept, jnp.exp(jnp.where(kept, logits - top, 0.0)), 0.0)
+    total = jnp.sum(weights, axis=-1, keepdims=True)
+    return weights / jnp.where(total > 0, total, 1.0)
+
+
+# Each `ModelConfig.attention` kind: how attention and edge probabilities treat masked entries.
+ATTENTION_WEIGHTS = {"release": float_mask_attention_weights, "masked": masked_softmax_weights}
+
+
+def masked_categorical(logits: jax.Array, mask: jax.Array, kind: str = "release") -> jax.Array:
     """Edge probabilities p = softmax(logits) restricted to valid edges (docs/MODEL.md 2.1
-    step 7)."""
-    return float_mask_attention_weights(logits, mask)
+    step 7), by the `ModelConfig.attention` kind's weights."""
+    return ATTENTION_WEIGHTS[kind](logits, mask)
 
 
 def drop_partially_detected(batch: SceneBatch, enabled: jax.Array | bool) -> SceneBatch:

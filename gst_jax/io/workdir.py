@@ -104,6 +104,8 @@ def run_name(data_config: DataConfig, model_config: ModelConfig,
         parts.append(f"layers{model_config.encoder_layers}")
     if model_config.lstm_hidden != ModelConfig.lstm_hidden:
         parts.append(f"lstm{model_config.lstm_hidden}")
+    if model_config.attention != ModelConfig.attention:
+        parts.append(model_config.attention)
     if model_config.grid != TimeGrid():
         grid = model_config.grid
         parts.append(f"{grid.obs_len}+{grid.pred_len}x{grid.step_s:g}s")

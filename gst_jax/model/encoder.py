@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax.config import ModelConfig
-from gst_jax.graph import float_mask_attention_weights
+from gst_jax.graph import ATTENTION_WEIGHTS
 from gst_jax.model.layers import Dropout, layer_norm, torch_dense, torch_uniform
 from gst_jax.model.selector import gather_neighbours, scatter_neighbours, with_ghost
 
@@ -75,7 +75,7 @@ class NodeEncoderLayer(nn.Module):
                        jnp.where(with_ghost_key, scores[..., -1], -jnp.inf))
         scores = jnp.concatenate([scores[..., :keys_without_ghost], ghost_score[..., None]],
                                  axis=-1)
-        weights = float_mask_attention_weights(scores, mask[..., None, :, :])
+        weights = ATTENTION_WEIGHTS[self.config.attention](scores, mask[..., None, :, :])
         kept = self.attention_dropout(weights, deterministic=deterministic)
         attended = jnp.einsum(f"...hlm,...{per}mhc->...lhc", kept[..., :v.shape[-2]],
                               split(v)).reshape(x.shape)

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax.config import ModelConfig
-from gst_jax.graph import float_mask_attention_weights, masked_categorical, EPS
+from gst_jax.graph import ATTENTION_WEIGHTS, masked_categorical, EPS
 from gst_jax.gumbel import gumbel_softmax
 from gst_jax.model.controls import Controls
 from gst_jax.model.layers import Dropout, LayerNormParams, layer_norm, torch_uniform
@@ -210,7 +210,7 @@ class EdgeSelector(nn.Module):
         if candidates is not None:
             hidden = _candidate_hidden(grouped(node_part), grouped(target_part),
                                        grouped(edge_basis), c, valid_edges, n, scale,
-                                       with_ghost(candidates, x.shape[-2]))
+                                       with_ghost(candidates, x.shape[-2]), config.attention)
         else:
             pq, pk, pv = grouped(node_part)                                      # (..., L, G, w)
             basis = jnp.concatenate([target_part[..., None, :], jnp.broadcast_to(
@@ -224,7 +224,8 @@ class EdgeSelector(nn.Module):
             group_scores = (jnp.einsum("...lgc,...mgc->...glm", pq, pk)[..., None, :, :, :]
                             + jnp.einsum("...igls,...ims->...iglm", by_target, c)
                             + jnp.einsum("...ilr,...igrm->...iglm", c, bq_pk))  # (..., N, G, L, L)
-            group_weights, mixed_coefficients = _attend(group_scores, c, valid_edges, n, scale)
+            group_weights, mixed_coefficients = _attend(group_scores, c, valid_edges, n, scale,
+                                                         config.attention)
             # The values' basis B_i is the target's own part and R - 1 parts shared by every
             # target (and sample): contracted with the shared parts in one product for all edges.
             own_values = grouped(target_part)[2]                                 # (..., N, G, w)
@@ -245,7 +246,7 @@ class EdgeSelector(nn.Module):
         contributions = hidden @ output_by_group                                 # (..., N, L, G)
         logits = jnp.einsum("...lg,gh->...hl", contributions, heads) + self.mlp_out_bias
 
-        edge_probs = masked_categorical(logits, valid_edges[..., None, :]) * _active_heads(
+        edge_probs = masked_categorical(logits, valid_edges[..., None, :], config.attention) * _active_heads(
             controls, num_groups)
         if candidates is None:
             return edge_probs
@@ -275,20 +276,22 @@ def head_totals(per_group: jax.Array, num_edge_heads: jax.Array, axis: int) -> j
 
 
 def _attend(group_scores: jax.Array, c: jax.Array, valid_edges: jax.Array,
-            num_edge_heads: jax.Array, scale: jax.Array) -> tuple[jax.Array, jax.Array]:
+            num_edge_heads: jax.Array, scale: jax.Array, attention: str
+            ) -> tuple[jax.Array, jax.Array]:
     """The attention among each target's neighbours (docs/MODEL.md 2.1 steps 4-5), per group:
-    group_scores (..., N, G, L, L), c (..., N, L, R), valid_edges (..., N, L). Returns the
+    group_scores (..., N, G, L, L), c (..., N, L, R), valid_edges (..., N, L), attention the
+    `ModelConfig.attention` kind. Returns the
     weights (..., N, G, L, L), each group its head's, and the coefficients they mix,
     sum_m w_ilm c~_im (..., N, G, L, R)."""
     scores = head_totals(group_scores, num_edge_heads, axis=-3) / scale
     edge_pair_mask = valid_edges[..., None, :, None] * valid_edges[..., None, None, :]
-    group_weights = float_mask_attention_weights(scores, edge_pair_mask)         # (..., N, G, L, L)
+    group_weights = ATTENTION_WEIGHTS[attention](scores, edge_pair_mask)         # (..., N, G, L, L)
     return group_weights, jnp.einsum("...glm,...ms->...gls", group_weights, c)
 
 
 def _candidate_hidden(node, target, shared, c: jax.Array, valid_edges: jax.Array,
-                      num_edge_heads: jax.Array, scale: jax.Array, neighbours: jax.Array
-                      ) -> jax.Array:
+                      num_edge_heads: jax.Array, scale: jax.Array, neighbours: jax.Array,
+                      attention: str) -> jax.Array:
     """`EdgeSelector`'s attention and value mixture over each target's candidates: the exact
     model's maths with l, m over the K+1 neighbours of `neighbours` (..., N, K+1) (candidates,
     then the ghost) and c, valid_edges gathered likewise. node (P_q, P_k, P_v) (..., N+1, G, w)
@@ -339,7 +342,7 @@ def _candidate_hidden(node, target, shared, c: jax.Array, valid_edges: jax.Array
     group_scores = (node_scores + jnp.einsum("...gls,...gms->...glm", by_target, c)
                     + jnp.einsum("...glr,...grm->...glm", c, bq_pk))
     group_weights, mixed = _attend(group_scores, c[..., 0, :, :], valid_edges, num_edge_heads,
-                                   scale)
+                                   scale, attention)
     hidden = (jnp.einsum("...glm,...gmc->...glc", group_weights, per_target(pv))
               + sum(mixed[..., s, None] * (tv[..., None, :] if s == 0 else ev[s - 1, :, None, :])
                     for s in range(mixed.shape[-1])))                           # (..., N, G, L, w)

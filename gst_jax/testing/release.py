@@ -72,8 +72,8 @@ def _replay(params, batch, noise, controls, *, config, hard, return_attention):
 
 
 def _replay_inputs(state_dict, inputs, gumbel, normals, *, num_edge_heads, ghost, tau, output,
-                   max_edge_heads):
-    config = ModelConfig(max_edge_heads=max_edge_heads, output=output)
+                   max_edge_heads, attention="release"):
+    config = ModelConfig(max_edge_heads=max_edge_heads, output=output, attention=attention)
     params = params_from_torch(load_state_dict(state_dict), num_edge_heads=num_edge_heads,
                                ghost=ghost, config=config)
     batch = batch_from_reference_inputs(inputs)
@@ -84,11 +84,14 @@ def _replay_inputs(state_dict, inputs, gumbel, normals, *, num_edge_heads, ghost
 def reference_forward(state_dict, inputs: Mapping[str, np.ndarray], gumbel: Sequence[np.ndarray],
                       *, num_edge_heads: int, ghost: bool, tau: float, hard: bool,
                       normals: Sequence[np.ndarray] | None = None,
-                      output: str = "deterministic", max_edge_heads: int = 16) -> dict:
-    """Replay one release forward pass; outputs in the release's layouts (see the fixture)."""
+                      output: str = "deterministic", max_edge_heads: int = 16,
+                      attention: str = "release") -> dict:
+    """Replay one release forward pass; outputs in the release's layouts (see the fixture).
+    attention: 'masked' replays the same weights and noise with the masked softmax instead
+    of the release's attention (`ModelConfig.attention`)."""
     config, params, batch, noise, controls = _replay_inputs(
         state_dict, inputs, gumbel, normals, num_edge_heads=num_edge_heads, ghost=ghost,
-        tau=tau, output=output, max_edge_heads=max_edge_heads)
+        tau=tau, output=output, max_edge_heads=max_edge_heads, attention=attention)
     loss, out = _replay(params, batch, noise, controls, config=config, hard=hard,
                         return_attention=True)
     heads = max(num_edge_heads, 1)
