@@ -37,6 +37,8 @@ def test_a_shipped_model_is_a_weights_folder_that_agrees_with_its_record(name):
     config = weights.read_config(folder)
     for key in ("model", "data", "train", "epoch", "source", "licence", "commands"):
         assert config[key] == meta[key], key
+    # config.json is covered by its own checksum: an edit of it is refused at load.
+    assert config["config_sha256"] == weights.config_digest(config)
     assert meta["commands"] and meta["source"]
     if name.startswith("crowdnav_sj"):             # made by others: their licence beside it
         assert meta["licence"].startswith("MIT") and sorted(folder.glob("LICENSE.*"))
