@@ -15,7 +15,12 @@ import io
 import json
 import os
 import pickle
+import resource
+import struct
+import subprocess
+import sys
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -49,8 +54,9 @@ STORAGE_CLASSES = {np.dtype(np.float32): FloatStorage, np.dtype(np.int64): LongS
 
 
 class _Storage:
-    def __init__(self, values: np.ndarray):
+    def __init__(self, values: np.ndarray, numel: int | None = None):
         self.values = values
+        self.numel = values.size if numel is None else numel    # as its pickle names it
 
 
 class _Tensor:
@@ -70,8 +76,8 @@ class _Tensor:
                                      collections.OrderedDict()))
 
 
-def write_pt(path: Path, obj, byteorder: str = "little") -> Path:
-    """`obj` (holding `_Tensor`s) as torch.save writes it."""
+def pickled(obj) -> tuple[bytes, dict[int, tuple[str, np.ndarray]]]:
+    """`obj`'s data.pkl as torch.save writes it, and its storages {id: (key, values)}."""
     storages: dict[int, tuple[str, np.ndarray]] = {}
 
     class Pickler(pickle.Pickler):
@@ -79,13 +85,19 @@ def write_pt(path: Path, obj, byteorder: str = "little") -> Path:
             if not isinstance(item, _Storage):
                 return None
             key, values = storages.setdefault(id(item), (str(len(storages)), item.values))
-            return ("storage", STORAGE_CLASSES[values.dtype], key, "cpu", values.size)
+            return ("storage", STORAGE_CLASSES[values.dtype], key, "cpu", item.numel)
 
     buffer = io.BytesIO()
     Pickler(buffer, protocol=2).dump(obj)
     data = buffer.getvalue()
     for name, module in TORCH_NAMES.items():
         data = data.replace(f"c{__name__}\n{name}\n".encode(), f"c{module}\n{name}\n".encode())
+    return data, storages
+
+
+def write_pt(path: Path, obj, byteorder: str = "little") -> Path:
+    """`obj` (holding `_Tensor`s) as torch.save writes it."""
+    data, storages = pickled(obj)
     order = "<" if byteorder == "little" else ">"
     with zipfile.ZipFile(path, "w") as archive:
         archive.writestr("archive/data.pkl", data)
@@ -176,6 +188,136 @@ def test_a_file_cannot_rewire_the_reader_nor_read_outside_a_storage(tmp_path):
         read_torch(legacy)
     with pytest.raises(DataError, match="missing.pt: no such file"):
         read_torch(tmp_path / "missing.pt")
+
+
+# -- refusing what would allocate far more than the file holds: each runs in a child process
+# whose heap is capped (RLIMIT_DATA), so that a reader that allocated what a file asks for
+# fails there with a MemoryError instead of taking this machine's memory.
+
+HEAP_CAP = 512 * 2**20
+READ_IN_A_CHILD = """
+import sys
+from gst_jax.errors import DataError
+from gst_jax.safe_pickle import read_torch
+try:
+    loaded = read_torch(sys.argv[1])
+except DataError as error:
+    print("refused:", error)
+else:
+    print("read:", {k: (v.shape, float(v.sum())) for k, v in loaded.items()})
+"""
+
+
+def read_with_capped_heap(path: Path) -> str:
+    """`read_torch(path)` in a child whose heap may not pass HEAP_CAP: its one line."""
+    def cap():
+        resource.setrlimit(resource.RLIMIT_DATA, (HEAP_CAP, HEAP_CAP))
+
+    root = Path(__file__).parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "OPENBLAS_NUM_THREADS": "1"}
+    child = subprocess.run([sys.executable, "-c", READ_IN_A_CHILD, str(path)], cwd=root,
+                           env=env, preexec_fn=cap, capture_output=True, text=True)
+    assert child.returncode == 0, child.stderr[-2000:]
+    return child.stdout.strip()
+
+
+def deflated_zeros(mebibytes: int) -> bytes:
+    """A raw deflate stream of `mebibytes` MiB of zeros, 1,037 bytes a MiB: one block, fully
+    flushed so that it starts afresh, repeated (no need to compress gigabytes)."""
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    block = compressor.compress(bytes(2**20)) + compressor.flush(zlib.Z_FULL_FLUSH)
+    assert compressor.compress(bytes(2**20)) + compressor.flush(zlib.Z_FULL_FLUSH) == block
+    return block * mebibytes + compressor.flush()
+
+
+def zip_by_hand(path: Path, entries: list[tuple[str, bytes, int, int, int]]) -> Path:
+    """A zip of (name, data as stored, method (0 stored, 8 deflated), CRC-32, size) entries,
+    each header saying the size and CRC given, whatever the data inflates to."""
+    local, central = b"", b""
+    for name, data, method, crc, size in entries:
+        header = struct.pack("<HHHHHIII", 20, 0, method, 0, 0x21, crc, len(data), size)
+        central += (b"PK\x01\x02" + struct.pack("<H", 20) + header
+                    + struct.pack("<HHHHHII", len(name), 0, 0, 0, 0, 0, len(local))
+                    + name.encode())
+        local += b"PK\x03\x04" + header + struct.pack("<HH", len(name), 0) + name.encode() + data
+    end = b"PK\x05\x06" + struct.pack("<HHHHIIH", 0, 0, len(entries), len(entries),
+                                       len(central), len(local), 0)
+    path.write_bytes(local + central + end)
+    return path
+
+
+def stored(name: str, data: bytes) -> tuple[str, bytes, int, int, int]:
+    return name, data, 0, zlib.crc32(data), len(data)
+
+
+def test_a_zero_stride_tensor_is_refused_before_it_is_copied(tmp_path):
+    """620 bytes of .pt holding one float as a (40000, 40000) tensor of stride 0: a 6.4 GB
+    copy (issue 74)."""
+    one = _Storage(np.zeros(1, np.float32))
+    path = write_pt(tmp_path / "stride0.pt", {"w": _Tensor(one, 0, (40000, 40000), (0, 0))})
+    assert path.stat().st_size < 1000
+    assert read_with_capped_heap(path) == (
+        f"refused: {path}: a tensor of size (40000, 40000) (float32, stride (0, 0)) would "
+        "take 6.4 GB, more than the 1.07 GB reading one file may allocate "
+        "(gst_jax.safe_pickle.MAX_BYTES): refused before allocating it")
+
+
+def test_a_zip_entry_is_read_no_further_than_its_header_declares_and_the_bound(tmp_path):
+    """A 4 MB entry that inflates to 4 GiB was read whole (issue 74). Declared as what it
+    inflates to, it is refused by its header; declared as 1 MiB, 1 MiB of it is read, never
+    more at once (zipfile's own read() would inflate 2 GiB before cutting)."""
+    bomb = deflated_zeros(4095)
+    assert len(bomb) < 4.3e6
+    numel = 4095 * 2**20 // 4
+    data, _ = pickled({"w": _Tensor(_Storage(np.zeros(1, np.float32), numel), 0, (numel,),
+                                    (1,))})
+    honest = zip_by_hand(tmp_path / "honest.pt", [
+        stored("archive/data.pkl", data), stored("archive/byteorder", b"little"),
+        ("archive/data/0", bomb, 8, 0, 4095 * 2**20)])
+    assert read_with_capped_heap(honest) == (
+        f"refused: {honest}: archive/data/0 (4293918720 bytes by its zip header) would take "
+        "4.29 GB, more than the 1.07 GB reading one file may allocate "
+        "(gst_jax.safe_pickle.MAX_BYTES): refused before allocating it")
+
+    numel = 2**20 // 4
+    data, _ = pickled({"w": _Tensor(_Storage(np.zeros(1, np.float32), numel), 0, (numel,),
+                                    (1,))})
+    lying = zip_by_hand(tmp_path / "lying.pt", [
+        stored("archive/data.pkl", data), stored("archive/byteorder", b"little"),
+        ("archive/data/0", bomb, 8, zlib.crc32(bytes(2**20)), 2**20)])
+    assert read_with_capped_heap(lying) == "read: {'w': ((262144,), 0.0)}"
+
+    # The pickle too: by its header, before it is inflated.
+    pickle_bomb = zip_by_hand(tmp_path / "pickle.pt", [
+        ("archive/data.pkl", bomb, 8, 0, 4095 * 2**20)])
+    assert read_with_capped_heap(pickle_bomb).startswith(
+        f"refused: {pickle_bomb}: archive/data.pkl (4293918720 bytes by its zip header) would "
+        "take 4.29 GB")
+
+
+def test_a_caller_bounds_what_a_file_may_make(tmp_path):
+    storage = _Storage(np.arange(4, dtype=np.float32))
+    path = write_pt(tmp_path / "small.pt", {"a": _Tensor(storage, 0, (4,), (1,)),
+                                            "b": _Tensor(storage, 0, (2, 4), (0, 1))})
+    loaded = read_torch(path, max_bytes=2000)
+    np.testing.assert_array_equal(loaded["b"], [[0, 1, 2, 3], [0, 1, 2, 3]])
+    # Its pickle, its 16 bytes of storage, and the 16 + 32 bytes of its two tensors.
+    pickle_bytes = zipfile.ZipFile(path).getinfo("archive/data.pkl").file_size
+    total = len(b"little") + pickle_bytes + 16 + 16 + 32
+    read_torch(path, max_bytes=total)
+    with pytest.raises(DataError, match=r"a tensor of size \(2, 4\) \(float32, stride \(0, 1\)\) "
+                                        r"would take 32 bytes, more than the \d+ bytes reading "
+                                        r"one file may allocate \(the test's\)"):
+        read_torch(path, max_bytes=total - 1, reason="the test's")
+    # A (numpy) dtype that is not one of torch's is no tensor's (protocol 0, by hand).
+    v3 = (b"ctorch._utils\n_rebuild_tensor_v3\n("
+          b"(Vstorage\nctorch\nFloatStorage\nV0\nVcpu\nI1\ntQ"      # storage 0, 1 element
+          b"I0\n(I1\nt(I1\ntI00\nN"                                 # offset, size, stride, ...
+          b"cnumpy\ndtype\n(VV8\ntRtR.")                               # numpy.dtype("V8")
+    v3 = zip_by_hand(tmp_path / "v3.pt", [stored("archive/data.pkl", v3),
+                                          stored("archive/data/0", bytes(4))])
+    with pytest.raises(DataError, match="a tensor whose dtype is not a torch dtype"):
+        read_torch(v3)
 
 
 # -- reading what torch writes
