@@ -15,6 +15,7 @@ import io
 import json
 import os
 import pickle
+import re
 import resource
 import struct
 import subprocess
@@ -28,6 +29,7 @@ import pytest
 
 from gst_jax import crowdnav, interop
 from gst_jax.errors import DataError
+from gst_jax.pretrained.__main__ import main as pretrained_main
 from gst_jax.safe_pickle import read_args, read_torch
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -369,25 +371,107 @@ def test_reads_big_endian_files_and_offsets_into_shared_storages(tmp_path):
 
 # -- CrowdNav++'s checkpoint folder, end to end
 
+PARITY = np.load(FIXTURES / "crowdnav_parity.npz")
+ARGS = json.loads(str(PARITY["seed1000/args"]))
+STATE_DICT = {key[len("seed1000/state_dict/"):]: PARITY[key] for key in PARITY.files
+              if key.startswith("seed1000/state_dict/")}
 
-def test_crowdnav_load_reads_a_checkpoint_folder_and_predicts_as_crowdnav_does(tmp_path):
-    fixture = np.load(FIXTURES / "crowdnav_parity.npz")
-    prefix = "seed1000/state_dict/"
-    state_dict = collections.OrderedDict(
-        (key[len(prefix):], _Tensor.of(fixture[key])) for key in fixture.files
-        if key.startswith(prefix))
-    args = json.loads(str(fixture["seed1000/args"]))
-    folder = tmp_path / "sj" / "checkpoint"
+
+def crowdnav_folder(root: Path, args: dict = ARGS, state_dict: dict = STATE_DICT,
+                    **more) -> Path:
+    """A CrowdNav++ checkpoint folder (`root/sj/checkpoint/`: args.pickle, epoch_N.pt) as
+    CrowdNav++ writes it; `more` joins the .pt's top-level entries."""
+    folder = root / "sj" / "checkpoint"
     folder.mkdir(parents=True)
     with open(folder / "args.pickle", "wb") as f:
         pickle.dump(argparse.Namespace(**args), f)            # as CrowdNav++ writes it
-    write_pt(folder / f"epoch_{args['num_epochs']}.pt",
-             {"epoch": args["num_epochs"], "model_state_dict": state_dict,
-              "train_loss_epoch": np.float64(-1.25)})
+    tensors = collections.OrderedDict((k, _Tensor.of(v)) for k, v in state_dict.items())
+    epoch = args.get("num_epochs", 100)
+    if type(epoch) is int and 0 < epoch < 10**6:
+        write_pt(folder / f"epoch_{epoch}.pt", {"epoch": epoch, "model_state_dict": tensors,
+                                                "train_loss_epoch": np.float64(-1.25), **more})
+    return root / "sj"
 
-    assert read_args(folder / "args.pickle") == args
-    predictor = crowdnav.load(tmp_path / "sj")
-    output_traj, output_mask = predictor(fixture["input_traj"], fixture["input_mask"])
-    np.testing.assert_allclose(np.asarray(output_traj), fixture["seed1000/output_traj"],
+
+def test_crowdnav_load_reads_a_checkpoint_folder_and_predicts_as_crowdnav_does(tmp_path):
+    folder = crowdnav_folder(tmp_path)
+    assert read_args(folder / "checkpoint" / "args.pickle") == ARGS
+    predictor = crowdnav.load(folder)
+    output_traj, output_mask = predictor(PARITY["input_traj"], PARITY["input_mask"])
+    np.testing.assert_allclose(np.asarray(output_traj), PARITY["seed1000/output_traj"],
                                atol=1e-5, rtol=0)
-    np.testing.assert_array_equal(np.asarray(output_mask), fixture["seed1000/output_mask"])
+    np.testing.assert_array_equal(np.asarray(output_mask), PARITY["seed1000/output_mask"])
+
+
+@pytest.mark.parametrize("changes, problem", [
+    ({"num_epochs": 10**5000}, "num_epochs is an integer of 16610 bits: must be an integer "
+                               "from 1 to 1000000"),
+    ({"embedding_size": "sixty-four"}, "embedding_size is 'sixty-four': must be an integer "
+                                       "from 1 to 4096"),
+    ({"obs_seq_len": None}, "has no obs_seq_len, one of gst_updated's args that gst_jax "
+                            "reads"),
+    ({"spatial_num_heads": 7}, "spatial_num_heads 7 does not divide embedding_size 64"),
+    ({"pred_seq_len": 10**6}, "pred_seq_len is 1000000: must be an integer from 1 to 1000"),
+    ({"lr": float("nan")}, "lr is nan: must be a finite number in (0, 1000]"),
+    ({"ghost": "no"}, "ghost is 'no': must be true or false"),
+])
+def test_hostile_args_are_refused_in_one_line_naming_file_and_field(tmp_path, changes, problem):
+    """A bare ValueError (num_epochs 10**5000), TypeError (a word for a width) or KeyError
+    (a field missing) before (issue 74)."""
+    args = {k: v for k, v in {**ARGS, **changes}.items() if v is not None}
+    folder = crowdnav_folder(tmp_path, args)
+    args_pickle = folder / "checkpoint" / "args.pickle"
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(folder)
+    assert str(refused.value) == f"{args_pickle}: {problem}"
+    with pytest.raises(DataError, match=re.escape(problem)):
+        crowdnav.from_state_dict(STATE_DICT, args)
+    # The export command says it in one line too.
+    with pytest.raises(SystemExit) as error:
+        pretrained_main(["export", str(folder), "--out", str(tmp_path / "out")])
+    assert str(error.value) == f"error: {args_pickle}: {problem}"
+
+
+def _without(name: str) -> dict:
+    return {k: v for k, v in STATE_DICT.items() if k != name}
+
+
+def _nan_at_first(name: str) -> dict:
+    broken = STATE_DICT[name].copy()
+    broken.flat[0] = np.nan
+    return {**STATE_DICT, name: broken}
+
+
+@pytest.mark.parametrize("state_dict, problem", [
+    (_without("lstm.weight_hh_l0"), "has no tensor lstm.weight_hh_l0, which its model reads"),
+    ({}, "holds no state dict (a mapping of names to tensors)"),
+    ({**STATE_DICT, "lstm.weight_ih_l0": STATE_DICT["lstm.weight_ih_l0"].T.copy()},
+     "lstm.weight_ih_l0 is of shape [64, 256], where its model's is [256, 64]"),
+    ({**STATE_DICT, "hidden2pos.bias": np.arange(5)},
+     "hidden2pos.bias is int64, not a float32 (or float64) tensor"),
+    (_nan_at_first("hidden2pos.weight"),
+     "hidden2pos.weight holds 1 non-finite value(s) of 320: parameters must be finite"),
+])
+def test_a_pt_that_is_not_its_models_is_refused_naming_file_and_tensor(tmp_path, state_dict,
+                                                                       problem):
+    """A .pt missing a key of the model raised a bare KeyError; one of another shape or NaN
+    loaded (issue 74)."""
+    folder = crowdnav_folder(tmp_path, state_dict=state_dict)
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(folder)
+    assert str(refused.value) == f"{folder / 'checkpoint' / 'epoch_100.pt'}: {problem}"
+
+
+def test_a_checkpoint_may_allocate_only_what_its_models_shapes_allow(tmp_path):
+    """Its args say how large its model is: a .pt making far more is refused before the
+    allocation, even below safe_pickle's default bound."""
+    one = _Storage(np.zeros(1, np.float32))
+    folder = crowdnav_folder(tmp_path, optimizer_state_dict={
+        "state": {0: {"exp_avg": _Tensor(one, 0, (2000, 2000), (0, 0))}}})
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(folder)
+    assert str(refused.value) == (
+        f"{folder / 'checkpoint' / 'epoch_100.pt'}: a tensor of size (2000, 2000) (float32, "
+        "stride (0, 0)) would take 16 MB, more than the 3.21 MB reading one file may allocate "
+        "(8 times the 270612 bytes of its model's parameters by args.pickle, and 1 MiB): "
+        "refused before allocating it")

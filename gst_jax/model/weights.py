@@ -122,20 +122,22 @@ def shown(value) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def field_problem(values: Any, fields: Mapping[str, Check], where: str,
+def field_problem(values: Any, fields: Mapping[str, Check], where: str = "",
                   retired: frozenset = frozenset(), known_only: bool = True) -> str | None:
     """What is wrong with the first field of `values` out of its range, in words naming the
-    field (`where.name`) and its value; None where every field is in range. Fields that
-    `values` lacks are not checked (they take their defaults); names not in `fields` are
-    refused where known_only (but `retired` ones are dropped by from_dict, so pass)."""
+    field (`where.name`, or `name` where `where` is empty) and its value; None where every
+    field is in range. Fields that `values` lacks are not checked (they take their defaults);
+    names not in `fields` are refused where known_only (but `retired` ones, which from_dict
+    drops, pass)."""
+    prefix = f"{where}." if where else ""
     if not isinstance(values, Mapping):
-        return f"{where} is {shown(values)}, not an object of fields"
+        return f"{where or 'it'} is {shown(values)}, not an object of fields"
     for name, value in values.items():
         if name in fields:
             if (problem := fields[name](value)) is not None:
-                return f"{where}.{name} is {shown(value)}: {problem}"
+                return f"{prefix}{name} is {shown(value)}: {problem}"
         elif known_only and name not in retired:
-            return f"{where} has a field {shown(name)} that it does not know"
+            return f"{where or 'it'} has a field {shown(name)} that it does not know"
     return None
 
 
@@ -289,10 +291,15 @@ def save(folder: str | Path, model_config: ModelConfig, params, record: Mapping 
     config = {"format": FORMAT, "sha256": hashlib.sha256(raw).hexdigest(),
               "model": dataclasses.asdict(model_config), **(record or {})}
     _check_fields(config, f"{folder / CONFIG_FILE} (not written)")
-    config[CONFIG_DIGEST] = config_digest(config)
+    try:
+        config[CONFIG_DIGEST] = config_digest(config)
+        text = json.dumps(config, indent=2) + "\n"
+    except (TypeError, ValueError) as error:     # a record of others: a set, a NaN, ...
+        raise RunError(f"{folder / CONFIG_FILE} (not written): its record holds a value that "
+                       f"JSON cannot ({error})") from None
     folder.mkdir(parents=True, exist_ok=True)
     (folder / WEIGHTS_FILE).write_bytes(raw)
-    (folder / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+    (folder / CONFIG_FILE).write_text(text)
     return folder
 
 
@@ -361,13 +368,13 @@ def _check_fields(config: Mapping, what: str):
                or field_problem(config.get("train", {}), TRAIN_FIELDS, "train",
                                 TrainConfig.RETIRED)
                or field_problem({k: v for k, v in config.items() if k in RECORD_FIELDS},
-                                RECORD_FIELDS, "config"))
+                                RECORD_FIELDS))
     commands = config.get("commands", [])
     if problem is None and not (isinstance(commands, list)
                                 and all(isinstance(c, str) for c in commands)):
-        problem = f"config.commands is {shown(commands)}: must be a list of strings"
+        problem = f"commands is {shown(commands)}: must be a list of strings"
     if problem is not None:
-        raise RunError(f"{what}: {problem.removeprefix('config.')}")
+        raise RunError(f"{what}: {problem}")
 
 
 def _check_config_digest(config: Mapping, path: Path):
