@@ -70,7 +70,8 @@ ARGS_FIELDS: dict[str, weights.Check] = {
     "spatial_num_layers": weights.MODEL_FIELDS["encoder_layers"],
     "spatial_num_heads": weights.MODEL_FIELDS["encoder_heads"],
     "lstm_hidden_size": weights.MODEL_FIELDS["lstm_hidden"],
-    "obs_seq_len": weights.MODEL_FIELDS["obs_len"], "pred_seq_len": weights.MODEL_FIELDS["pred_len"],
+    "obs_seq_len": weights.MODEL_FIELDS["obs_len"],
+    "pred_seq_len": weights.MODEL_FIELDS["pred_len"],
     "ghost": weights.boolean, "deterministic": weights.boolean,
     "num_epochs": weights.TRAIN_FIELDS["epochs"], "batch_size": weights.TRAIN_FIELDS["batch_size"],
     "lr": weights.TRAIN_FIELDS["learning_rate"], "init_temp": weights.TRAIN_FIELDS["tau_start"],
@@ -80,9 +81,10 @@ ARGS_FIELDS: dict[str, weights.Check] = {
 MODEL_ARGS = ("temporal", "embedding_size", "spatial_num_layers", "spatial_num_heads",
               "lstm_hidden_size", "obs_seq_len", "pred_seq_len", "ghost")
 CHECKPOINT_ARGS = MODEL_ARGS + ("num_epochs", "batch_size", "lr", "init_temp", "random_seed")
-# What a checkpoint's .pt may allocate, in its model's parameters (by its args): the
-# parameters, Adam's two moments and a spare, each read as stored and copied as an array;
-# and 1 MiB for its pickle and metrics. CrowdNav++'s: 1.6 MB of the 3.2 MB this allows.
+# What a checkpoint's .pt may allocate, in its model's parameters (by its args, as float64,
+# the widest dtype taken): the parameters, Adam's two moments and a spare, each read as stored
+# and copied as an array; and 1 MiB for its pickle and metrics. CrowdNav++'s make 1.7 MB of
+# the 5.4 MB this allows.
 PT_PARAMETER_COPIES = 8
 PT_OTHER_BYTES = 2**20
 
@@ -289,10 +291,10 @@ def load(load_path: str | Path, *, step_s: float = CROWDNAV_STEP_S,
     args_path = Path(load_path) / "checkpoint" / "args.pickle"
     config = model_config(args, step_s, str(args_path))
     # Reading the .pt may allocate what its model's shapes allow (PT_PARAMETER_COPIES).
-    parameter_bytes = 4 * sum(math.prod(shape) for shape in expected_state_dict(config).values())
+    parameter_bytes = 8 * sum(math.prod(shape) for shape in expected_state_dict(config).values())
     bound = PT_PARAMETER_COPIES * parameter_bytes + PT_OTHER_BYTES
     reason = (f"{PT_PARAMETER_COPIES} times the {parameter_bytes} bytes of its model's "
-              f"parameters by {args_path.name}, and 1 MiB")
+              f"parameters as float64 by {args_path.name}, and 1 MiB")
     pt = args_path.parent / f"epoch_{args['num_epochs']}.pt"
     state_dict = load_state_dict(pt, bound, reason)
     return _from_checkpoint(state_dict, args, step_s, non_finite, str(pt), str(args_path))

@@ -16,7 +16,6 @@ import json
 import os
 import pickle
 import re
-import resource
 import struct
 import subprocess
 import sys
@@ -197,8 +196,10 @@ def test_a_file_cannot_rewire_the_reader_nor_read_outside_a_storage(tmp_path):
 # fails there with a MemoryError instead of taking this machine's memory.
 
 HEAP_CAP = 512 * 2**20
+# The child caps its own heap first (a preexec_fn would fork this multithreaded process).
 READ_IN_A_CHILD = """
-import sys
+import resource, sys
+resource.setrlimit(resource.RLIMIT_DATA, (int(sys.argv[2]), int(sys.argv[2])))
 from gst_jax.errors import DataError
 from gst_jax.safe_pickle import read_torch
 try:
@@ -212,13 +213,10 @@ else:
 
 def read_with_capped_heap(path: Path) -> str:
     """`read_torch(path)` in a child whose heap may not pass HEAP_CAP: its one line."""
-    def cap():
-        resource.setrlimit(resource.RLIMIT_DATA, (HEAP_CAP, HEAP_CAP))
-
     root = Path(__file__).parents[1]
     env = {**os.environ, "PYTHONPATH": str(root), "OPENBLAS_NUM_THREADS": "1"}
-    child = subprocess.run([sys.executable, "-c", READ_IN_A_CHILD, str(path)], cwd=root,
-                           env=env, preexec_fn=cap, capture_output=True, text=True)
+    child = subprocess.run([sys.executable, "-c", READ_IN_A_CHILD, str(path), str(HEAP_CAP)],
+                           cwd=root, env=env, capture_output=True, text=True)
     assert child.returncode == 0, child.stderr[-2000:]
     return child.stdout.strip()
 
@@ -472,6 +470,6 @@ def test_a_checkpoint_may_allocate_only_what_its_models_shapes_allow(tmp_path):
         crowdnav.load(folder)
     assert str(refused.value) == (
         f"{folder / 'checkpoint' / 'epoch_100.pt'}: a tensor of size (2000, 2000) (float32, "
-        "stride (0, 0)) would take 16 MB, more than the 3.21 MB reading one file may allocate "
-        "(8 times the 270612 bytes of its model's parameters by args.pickle, and 1 MiB): "
-        "refused before allocating it")
+        "stride (0, 0)) would take 16 MB, more than the 5.38 MB reading one file may allocate "
+        "(8 times the 541224 bytes of its model's parameters as float64 by args.pickle, and "
+        "1 MiB): refused before allocating it")

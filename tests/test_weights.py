@@ -247,6 +247,19 @@ def test_config_fields_out_of_range_are_refused_naming_file_field_and_value(
     assert _one_line(error) == f"{folder / 'config.json'}: {name} is {shown}: {problem}"
 
 
+def test_save_writes_nothing_that_load_would_refuse(trained, tmp_path):
+    _, exported = trained
+    params = load_model(exported).params
+    with pytest.raises(RunError) as error:
+        weights.save(tmp_path / "grid", dataclasses.replace(TINY_MODEL, pred_len=0), params)
+    assert _one_line(error) == (f"{tmp_path / 'grid' / 'config.json'} (not written): "
+                                "model.pred_len is 0: must be an integer from 1 to 1000")
+    with pytest.raises(RunError, match=r"config.json \(not written\): its record holds a value "
+                                       "that JSON cannot"):
+        weights.save(tmp_path / "record", TINY_MODEL, params, {"crowdnav_args": {"lr": {1}}})
+    assert not (tmp_path / "grid").exists() and not (tmp_path / "record").exists()
+
+
 def test_an_edit_of_config_json_is_detected_by_its_checksum(trained, tmp_path):
     _, exported = trained
     config = json.loads((exported / "config.json").read_text())

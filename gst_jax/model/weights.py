@@ -118,8 +118,8 @@ def shown(value) -> str:
     (Python refuses to write integers of more than 4300 digits)."""
     if type(value) is int and value.bit_length() > 64:
         return f"{'-' if value < 0 else ''}an integer of {value.bit_length()} bits"
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
+    written = repr(value)
+    return written if len(written) <= 40 else written[:37] + "..."
 
 
 def field_problem(values: Any, fields: Mapping[str, Check], where: str = "",
