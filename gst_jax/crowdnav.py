@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from pathlib import Path
 from typing import Any, Literal, Mapping
 
@@ -49,7 +50,8 @@ import numpy as np
 from gst_jax.config import EVAL_TAU, ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.errors import DataError
-from gst_jax.interop import load_state_dict, params_from_torch
+from gst_jax.interop import (check_state_dict, expected_state_dict, load_state_dict,
+                             params_from_torch)
 from gst_jax.model import Controls, weights
 from gst_jax.rollout import rollout
 from gst_jax.safe_pickle import read_args
@@ -60,27 +62,81 @@ CROWDNAV_STEP_S = 0.25
 NON_FINITE = ("raise", "undetected")
 
 
-def model_config(args: Mapping[str, Any], step_s: float = CROWDNAV_STEP_S) -> ModelConfig:
-    """The ModelConfig of a gst_updated run: `vars(args)` of its `checkpoint/args.pickle`."""
+# gst_updated's args that gst_jax reads, and their ranges (`gst_jax.model.weights`): a value
+# out of range is refused in one line naming args.pickle, the field and the value.
+ARGS_FIELDS: dict[str, weights.Check] = {
+    "temporal": weights.one_of(lambda: ("lstm", "faster_lstm")),
+    "embedding_size": weights.MODEL_FIELDS["node_dim"],
+    "spatial_num_layers": weights.MODEL_FIELDS["encoder_layers"],
+    "spatial_num_heads": weights.MODEL_FIELDS["encoder_heads"],
+    "lstm_hidden_size": weights.MODEL_FIELDS["lstm_hidden"],
+    "obs_seq_len": weights.MODEL_FIELDS["obs_len"],
+    "pred_seq_len": weights.MODEL_FIELDS["pred_len"],
+    "ghost": weights.boolean, "deterministic": weights.boolean,
+    "num_epochs": weights.TRAIN_FIELDS["epochs"], "batch_size": weights.TRAIN_FIELDS["batch_size"],
+    "lr": weights.TRAIN_FIELDS["learning_rate"], "init_temp": weights.TRAIN_FIELDS["tau_start"],
+    "random_seed": weights.TRAIN_FIELDS["seed"]}
+# Those a model needs; a checkpoint folder's args also name its epoch_<num_epochs>.pt, and
+# its training (`gst_jax.pretrained.export`).
+MODEL_ARGS = ("temporal", "embedding_size", "spatial_num_layers", "spatial_num_heads",
+              "lstm_hidden_size", "obs_seq_len", "pred_seq_len", "ghost")
+CHECKPOINT_ARGS = MODEL_ARGS + ("num_epochs", "batch_size", "lr", "init_temp", "random_seed")
+# What a checkpoint's .pt may allocate, in its model's parameters (by its args, as float64,
+# the widest dtype taken): the parameters, Adam's two moments and a spare, each read as stored
+# and copied as an array; and 1 MiB for its pickle and metrics. CrowdNav++'s make 1.7 MB of
+# the 5.4 MB this allows.
+PT_PARAMETER_COPIES = 8
+PT_OTHER_BYTES = 2**20
+
+
+def checked_args(args: Any, where: str = "args", required=MODEL_ARGS) -> Mapping[str, Any]:
+    """gst_updated's args (`vars(args)` of its args.pickle), refused in one line naming
+    `where` and the field where one of `required` is missing or a field is out of range."""
+    if not isinstance(args, Mapping):
+        raise DataError(f"{where}: holds a {type(args).__name__}, not gst_updated's args")
+    missing = [name for name in required if name not in args]
+    if missing:
+        raise DataError(f"{where}: has no {missing[0]}, one of gst_updated's args that "
+                        "gst_jax reads")
+    if problem := weights.field_problem(args, ARGS_FIELDS, known_only=False):
+        raise DataError(f"{where}: {problem}")
+    if args["embedding_size"] % args["spatial_num_heads"]:
+        raise DataError(f"{where}: spatial_num_heads {args['spatial_num_heads']} does not "
+                        f"divide embedding_size {args['embedding_size']}")
+    return args
+
+
+def model_config(args: Mapping[str, Any], step_s: float = CROWDNAV_STEP_S,
+                 where: str = "args") -> ModelConfig:
+    """The ModelConfig of a gst_updated run: `vars(args)` of its `checkpoint/args.pickle`
+    (`where` names it in a refusal)."""
+    checked_args(args, where)
+    if (problem := weights.MODEL_FIELDS["step_s"](step_s)) is not None:
+        raise DataError(f"step_s is {weights.shown(step_s)}: {problem}")
     unsupported = {"spatial": "gumbel_social_transformer", "decode_style": "recursive",
                    "lstm_num_layers": 1, "motion_dim": 2, "output_dim": 5,
                    "only_observe_full_period": False, "spatial_num_heads_edges": 0}
     for name, expected in unsupported.items():
         if args.get(name, expected) != expected:
-            raise ValueError(f"gst_updated run with {name}={args[name]!r}: gst_jax serves "
-                             f"{name}={expected!r} (docs/MODEL.md 6)")
-    if args["temporal"] not in ("lstm", "faster_lstm"):
-        raise ValueError(f"gst_updated run with temporal={args['temporal']!r}: expected lstm "
-                         "or faster_lstm")
+            raise DataError(f"{where}: gst_updated run with {name}="
+                            f"{weights.shown(args[name])}: gst_jax serves {name}={expected!r} "
+                            "(docs/MODEL.md 6)")
     width = args["embedding_size"]
     return ModelConfig(
         node_dim=width, edge_dim=2 * width, num_edge_heads=0, max_edge_heads=0,
-        ghost=bool(args["ghost"]), encoder_layers=args["spatial_num_layers"],
+        ghost=args["ghost"], encoder_layers=args["spatial_num_layers"],
         encoder_heads=args["spatial_num_heads"], encoder_ff_dim=128,
         lstm_hidden=args["lstm_hidden_size"],
         output="deterministic" if args.get("deterministic") else "gaussian",
         temporal=args["temporal"], step_s=step_s, obs_len=args["obs_seq_len"],
         pred_len=args["pred_seq_len"])
+
+
+def checkpoint_args(load_path: str | Path) -> dict[str, Any]:
+    """The args of a CrowdNav++ checkpoint folder (`<load_path>/checkpoint/args.pickle`),
+    read without running code and checked: every field gst_jax reads, in its range."""
+    path = Path(load_path) / "checkpoint" / "args.pickle"
+    return dict(checked_args(read_args(path), str(path), CHECKPOINT_ARGS))
 
 
 def predict(params, config: ModelConfig, input_traj: jax.Array, input_mask: jax.Array
@@ -183,8 +239,16 @@ def from_state_dict(state_dict: Mapping[str, Any], args: Mapping[str, Any], *,
                     non_finite: Literal["raise", "undetected"] = "raise") -> Predictor:
     """A predictor from a gst_updated checkpoint: `state_dict` maps its torch names to arrays
     (`{k: v.numpy() for k, v in checkpoint["model_state_dict"].items()}`), `args` is
-    `vars(args)` of its args.pickle."""
-    config = model_config(args, step_s)
+    `vars(args)` of its args.pickle. Both are checked (`checked_args`,
+    `gst_jax.interop.check_state_dict`): a refusal is one line naming the field or tensor."""
+    return _from_checkpoint(load_state_dict(state_dict), args, step_s, non_finite)
+
+
+def _from_checkpoint(state_dict: Mapping[str, np.ndarray], args: Mapping[str, Any],
+                     step_s: float, non_finite, where: str = "state_dict",
+                     args_where: str = "args") -> Predictor:
+    config = model_config(args, step_s, args_where)
+    check_state_dict(state_dict, config, where)
     params = params_from_torch(state_dict, num_edge_heads=0, ghost=config.ghost, config=config)
     return Predictor(jax.tree.map(jnp.asarray, params), config, non_finite)
 
@@ -212,13 +276,25 @@ def load(load_path: str | Path, *, step_s: float = CROWDNAV_STEP_S,
     `pretrained:crowdnav_sj` (CrowdNav++'s `..._seed1000/sj` checkpoint, converted) or
     `pretrained:crowdnav_sj_rand` (`..._seed1000_rand/sj`), or any weights folder of
     `gst_jax.model.weights` (`python -m gst_jax.pretrained export ... --out DIR`), whose
-    config.json gives the time step (`step_s` is for CrowdNav++'s folders)."""
+    config.json gives the time step (`step_s` is for CrowdNav++'s folders).
+
+    A checkpoint folder is checked before it is used, each refusal one line naming the file
+    and the field or tensor (`DataError`): args.pickle's fields in their ranges
+    (`checked_args`), the .pt read within what its model's shapes allow
+    (PT_PARAMETER_COPIES times its parameters' bytes, and PT_OTHER_BYTES: a tensor or a zip
+    entry beyond it is refused before it is allocated), and its state dict holding every
+    tensor of that model, of its shape, finite (`gst_jax.interop.check_state_dict`)."""
     if weights.is_weights(load_path):
         loaded = weights.load(load_path)
         return _predictor(str(load_path), loaded.model_config, loaded.params, non_finite)
-    folder = Path(load_path) / "checkpoint"
-    args = read_args(folder / "args.pickle")
-    if not isinstance(args.get("num_epochs"), int):
-        raise DataError(f"{folder / 'args.pickle'}: holds no num_epochs (the epoch_N.pt to read)")
-    state_dict = load_state_dict(folder / f"epoch_{args['num_epochs']}.pt")
-    return from_state_dict(state_dict, args, step_s=step_s, non_finite=non_finite)
+    args = checkpoint_args(load_path)
+    args_path = Path(load_path) / "checkpoint" / "args.pickle"
+    config = model_config(args, step_s, str(args_path))
+    # Reading the .pt may allocate what its model's shapes allow (PT_PARAMETER_COPIES).
+    parameter_bytes = 8 * sum(math.prod(shape) for shape in expected_state_dict(config).values())
+    bound = PT_PARAMETER_COPIES * parameter_bytes + PT_OTHER_BYTES
+    reason = (f"{PT_PARAMETER_COPIES} times the {parameter_bytes} bytes of its model's "
+              f"parameters as float64 by {args_path.name}, and 1 MiB")
+    pt = args_path.parent / f"epoch_{args['num_epochs']}.pt"
+    state_dict = load_state_dict(pt, bound, reason)
+    return _from_checkpoint(state_dict, args, step_s, non_finite, str(pt), str(args_path))

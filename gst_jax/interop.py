@@ -4,6 +4,9 @@ back.
 - `params_from_torch`: a release state dict (torch names -> arrays, or a `.pt` file) ->
   gst_jax parameters in the traced-n layout.
 - `params_to_torch`: gst_jax parameters (or gradients) -> the release's names and layouts.
+- `check_state_dict`: refuses, in one line naming the file and the tensor, a state dict that
+  lacks a tensor of a model, holds one of another shape, or one that is not finite float32
+  (`params_from_torch` would fail with a bare KeyError, or build parameters that fail later).
 
 torch is not needed: `.pt` files are read by `gst_jax.safe_pickle`, which admits tensors,
 plain values and numpy scalars and refuses anything else a file would run.
@@ -20,24 +23,76 @@ import numpy as np
 
 from gst_jax.config import ModelConfig
 from gst_jax.errors import DataError
-from gst_jax.safe_pickle import read_torch
+from gst_jax.model import weights
+from gst_jax.safe_pickle import MAX_BYTES, read_torch
 
 SELECTOR = "gumbel_social_transformer.edge_selector."
 ENCODER = "gumbel_social_transformer.node_encoder_layers.{}."
+# gst_updated (CrowdNav++) keeps its node embedding inside its transformer.
+GST_UPDATED_NODE_EMBEDDING = "gumbel_social_transformer.node_embedding."
 
 
-def load_state_dict(source: str | Path | Mapping[str, Any]) -> dict[str, np.ndarray]:
+def load_state_dict(source: str | Path | Mapping[str, Any], max_bytes: int = MAX_BYTES,
+                    reason: str = "gst_jax.safe_pickle.MAX_BYTES") -> dict[str, np.ndarray]:
     """A mapping of torch names to arrays, from a mapping or a `.pt` file (the release's
-    checkpoint layout, `{"model_state_dict": ..., ...}`, or a bare state dict)."""
+    checkpoint layout, `{"model_state_dict": ..., ...}`, or a bare state dict); reading the
+    file may allocate at most `max_bytes` (`gst_jax.safe_pickle.read_torch`)."""
     if isinstance(source, Mapping):
         return {name: np.asarray(value) for name, value in source.items()}
-    loaded = read_torch(source)
+    loaded = read_torch(source, max_bytes, reason)
     if isinstance(loaded, Mapping) and "model_state_dict" in loaded:
         loaded = loaded["model_state_dict"]
     if not (isinstance(loaded, Mapping) and loaded
             and all(isinstance(value, np.ndarray) for value in loaded.values())):
         raise DataError(f"{source}: holds no state dict (a mapping of names to tensors)")
     return dict(loaded)
+
+
+def expected_state_dict(config: ModelConfig) -> dict[str, tuple[int, ...]]:
+    """{torch name: shape} of the tensors `params_from_torch` reads for a model of `config` (n
+    = config.num_edge_heads), in the release's names; `check_state_dict` also takes
+    gst_updated's node embedding name and, with n = 0, no edge embedding."""
+    zeros = {name: np.zeros(shape, dtype)
+             for name, (shape, dtype) in weights.expected_layout(config).items()}
+    tree: dict = {}
+    for name, value in zeros.items():
+        *path, leaf = name.split("/")
+        node = tree
+        for key in path:
+            node = node.setdefault(key, {})
+        node[leaf] = value
+    torch = params_to_torch(tree, num_edge_heads=config.num_edge_heads, config=config)
+    return {name: value.shape for name, value in torch.items()}
+
+
+def check_state_dict(state_dict: Mapping[str, Any], config: ModelConfig, where: str):
+    """Refuse, in one line naming `where` and the tensor, a state dict that is not one of a
+    model of `config`: a tensor missing, of another shape, not floating point or not finite.
+    Tensors the model does not read (an optimizer's, metrics) are let be."""
+    expected = expected_state_dict(config)
+    if GST_UPDATED_NODE_EMBEDDING + "weight" in state_dict:
+        expected = {name.replace("node_embedding.", GST_UPDATED_NODE_EMBEDDING, 1)
+                    if name.startswith("node_embedding.") else name: shape
+                    for name, shape in expected.items()}
+    if not config.num_edge_heads and "edge_embedding.weight" not in state_dict:
+        expected = {k: v for k, v in expected.items() if not k.startswith("edge_embedding.")}
+    missing = [name for name in expected if name not in state_dict]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise DataError(f"{where}: has no tensor {missing[0]}{more}, which its model reads")
+    for name, shape in expected.items():
+        value = state_dict[name]
+        if not isinstance(value, np.ndarray) or value.dtype not in (np.float32, np.float64):
+            raise DataError(f"{where}: {name} is "
+                            f"{getattr(value, 'dtype', type(value).__name__)}, not a float32 "
+                            "(or float64) tensor")
+        if value.shape != shape:
+            raise DataError(f"{where}: {name} is of shape {list(value.shape)}, where its "
+                            f"model's is {list(shape)}")
+        finite = np.isfinite(value)
+        if not finite.all():
+            raise DataError(f"{where}: {name} holds {int((~finite).sum())} non-finite "
+                            f"value(s) of {finite.size}: parameters must be finite")
 
 
 def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
@@ -61,7 +116,7 @@ def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
     norm = lambda prefix: {"scale": w(prefix + "weight"), "bias": w(prefix + "bias")}
 
     node_embedding = ("node_embedding." if "node_embedding.weight" in state_dict
-                      else "gumbel_social_transformer.node_embedding.")
+                      else GST_UPDATED_NODE_EMBEDDING)
     edge_embedding = (dense("edge_embedding.") if "edge_embedding.weight" in state_dict
                       else {"kernel": jnp.zeros((2, config.edge_dim)),
                             "bias": jnp.zeros(config.edge_dim)})

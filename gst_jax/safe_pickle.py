@@ -6,7 +6,7 @@ readers admit only the globals that such files hold and refuse anything else wit
 
 - `read_args(path) -> dict`: a pickled `argparse.Namespace` (CrowdNav++'s
   `checkpoint/args.pickle`) or dict, of plain values.
-- `read_torch(path)`: a `torch.save` file in its zip format (torch >= 1.6): containers and plain
+- `read_torch(path, max_bytes)`: a `torch.save` file in its zip format (torch >= 1.6): containers and plain
   values, `collections.OrderedDict`, tensors and parameters as numpy arrays (each a copy, with
   its storage offset, size and stride, in this machine's byte order), torch dtypes as numpy
   dtypes, and numpy scalars (the release's epoch metrics, pickled under numpy 1 as
@@ -14,11 +14,23 @@ readers admit only the globals that such files hold and refuse anything else wit
 
 Nor can a file rewire the reader: the admitted globals refuse having their state set (pickle's
 BUILD), and numpy dtypes are built as copies, never numpy's shared ones.
+
+Nor can a small file make the reader allocate much: everything `read_torch` allocates for a
+file (its pickle, each storage's bytes, each tensor's copy) is counted against `max_bytes`,
+and what would pass it is refused in one line BEFORE it is allocated: a zip entry by the size
+its header declares (a 4 MB entry that deflates to 4 GiB), a storage by the element count its
+pickle names, a tensor by its shape (a 620-byte file holding a (40000, 40000) tensor of stride
+0 over one element would be a 6.4 GB copy). Entries are decompressed in bounded chunks and
+never past the size their header declares (zipfile's own `read()` would inflate up to 2 GiB
+at once first). The default, MAX_BYTES, is for a reader that knows nothing of the file;
+`gst_jax.crowdnav.load` bounds a checkpoint by its model's known shapes. `read_args` reads at
+most MAX_ARGS_BYTES.
 """
 
 from __future__ import annotations
 
 import collections
+import io
 import math
 import pickle
 import zipfile
@@ -40,6 +52,13 @@ TORCH_DTYPES = {
     "int32": np.int32, "int16": np.int16, "int8": np.int8, "uint8": np.uint8,
     "uint16": np.uint16, "uint32": np.uint32, "uint64": np.uint64, "bool": np.bool_,
     "complex64": np.complex64, "complex128": np.complex128}
+# What reading one .pt may allocate unless its reader knows better (`read_torch(max_bytes=)`):
+# CrowdNav++'s checkpoints (parameters, Adam's moments, metrics) make 1.6 MB, the release's less.
+MAX_BYTES = 2**30
+# The largest args.pickle read: CrowdNav++'s are 741 and 746 bytes.
+MAX_ARGS_BYTES = 2**20
+# Zip entries are inflated this much at a time.
+CHUNK_BYTES = 2**20
 ARGS_ALLOWED = "only argparse.Namespace and plain values are allowed"
 TORCH_ALLOWED = "only tensors, plain values and numpy scalars are allowed"
 
@@ -89,24 +108,69 @@ class _StorageType:
 class _Storage:
     """One storage of a .pt file: its bytes, the dtype torch saved them as, their byte order."""
 
-    __slots__ = ("raw", "dtype", "byteorder", "arrays")
+    __slots__ = ("raw", "dtype", "byteorder", "budget")
 
-    def __init__(self, raw: bytes, dtype: np.dtype, byteorder: str):
+    def __init__(self, raw: bytes, dtype: np.dtype, byteorder: str, budget: _Budget):
         self.raw = raw
         self.dtype = dtype
         self.byteorder = byteorder
-        self.arrays = {}    # by dtype: the tensors of a storage share it
+        self.budget = budget    # what reading its file may still allocate, its tensors included
 
     def values(self, dtype: np.dtype) -> np.ndarray:
-        """The storage as a 1-D array of `dtype`, in this machine's byte order."""
-        if dtype not in self.arrays:
-            stored = np.dtype(dtype).newbyteorder("<" if self.byteorder == "little" else ">")
-            self.arrays[dtype] = np.frombuffer(
-                self.raw, stored, count=len(self.raw) // stored.itemsize).astype(dtype)
-        return self.arrays[dtype]
+        """The storage as a 1-D read-only array of `dtype` in the file's byte order (a view of
+        its bytes: nothing is allocated)."""
+        stored = np.dtype(dtype).newbyteorder("<" if self.byteorder == "little" else ">")
+        return np.frombuffer(self.raw, stored, count=len(self.raw) // stored.itemsize)
 
     def __setstate__(self, state):
         raise _Refused("refused to set the state of a storage")
+
+
+class _Budget:
+    """What reading one file may still allocate; `take` refuses, before the allocation, what
+    would pass it."""
+
+    def __init__(self, max_bytes: int, reason: str):
+        self.left, self.max_bytes, self.reason = max_bytes, max_bytes, reason
+
+    def take(self, nbytes: int, what: str):
+        if nbytes > self.left:
+            raise _Refused(f"{what} would take {_size(nbytes)}, more than the "
+                           f"{_size(self.max_bytes)} reading one file may allocate "
+                           f"({self.reason}): refused before allocating it")
+        self.left -= nbytes
+
+
+def _size(nbytes: int) -> str:
+    """A byte count in words: '6.4 GB' (a count from a crafted file may be any integer)."""
+    if nbytes.bit_length() > 64:
+        return f"2^{nbytes.bit_length() - 1} bytes or more"
+    for unit, scale in (("GB", 10**9), ("MB", 10**6), ("kB", 10**3)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.3g} {unit}"
+    return f"{nbytes} bytes"
+
+
+def _read_entry(archive: zipfile.ZipFile, name: str, nbytes: int | None, budget: _Budget
+                ) -> bytes:
+    """The first `nbytes` (None: all) of a zip entry, checked against the budget by the size
+    its header declares before anything is read, inflated at most CHUNK_BYTES at a time and
+    never past that size (where the data would go on, zipfile stops and its CRC check fails)."""
+    declared = archive.getinfo(name).file_size
+    wanted = declared if nbytes is None else nbytes
+    if wanted > declared:
+        raise _Refused(f"{name} holds {declared} bytes, fewer than the {wanted} it should")
+    budget.take(wanted, f"{name} ({declared} bytes by its zip header)")
+    parts, left = [], wanted
+    with archive.open(name) as entry:
+        while left > 0:
+            part = entry.read(min(left, CHUNK_BYTES))
+            if not part:
+                raise _Refused(f"{name} ends after {wanted - left} of the {wanted} bytes its "
+                               "zip header declares")
+            parts.append(part)
+            left -= len(part)
+    return b"".join(parts)
 
 
 def _ints(value, what: str) -> tuple[int, ...]:
@@ -117,7 +181,8 @@ def _ints(value, what: str) -> tuple[int, ...]:
 
 def _tensor(storage, storage_offset, size, stride, dtype=None) -> np.ndarray:
     """A copy of `storage`'s elements at `storage_offset + sum(index * stride)`, shaped `size`.
-    Checked first: as_strided on a crafted stride would read outside the storage."""
+    Checked first: as_strided on a crafted stride would read outside the storage, and a stride
+    of 0 would make a copy of any size from one element (the budget refuses it)."""
     if not isinstance(storage, _Storage):
         raise _Refused("a tensor not backed by a storage of this file")
     dtype = storage.dtype if dtype is None else dtype
@@ -127,15 +192,19 @@ def _tensor(storage, storage_offset, size, stride, dtype=None) -> np.ndarray:
     if storage_offset < 0 or min(size + stride, default=0) < 0:
         raise _Refused(f"a tensor with a negative offset, size or stride ({storage_offset}, "
                        f"{size}, {stride})")
-    values = storage.values(dtype)
+    storage.budget.take(math.prod(size) * dtype.itemsize,
+                         f"a tensor of size {size} ({dtype}, stride {stride})")
     if math.prod(size) == 0:
         return np.zeros(size, dtype)
+    values = storage.values(dtype)
     last = storage_offset + sum((n - 1) * s for n, s in zip(size, stride))
     if last >= len(values):
         raise _Refused(f"a tensor of size {size}, stride {stride} and offset {storage_offset} "
                        f"beyond its storage of {len(values)} elements")
     strides = tuple(s * values.itemsize for s in stride)
-    return np.lib.stride_tricks.as_strided(values[storage_offset:], size, strides).copy()
+    view = np.lib.stride_tricks.as_strided(values[storage_offset:], size, strides,
+                                           writeable=False)
+    return view.astype(dtype, order="C")        # this machine's byte order, a copy
 
 
 def _rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad=False,
@@ -146,7 +215,7 @@ def _rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad=Fals
 def _rebuild_tensor_v3(storage, storage_offset, size, stride, requires_grad, backward_hooks,
                        dtype, metadata=None) -> np.ndarray:
     """torch's rebuild for dtypes that have no typed storage (uint16, ...): the dtype apart."""
-    if not isinstance(dtype, np.dtype):
+    if not isinstance(dtype, np.dtype) or dtype not in _PLAIN_DTYPES:
         raise _Refused("a tensor whose dtype is not a torch dtype")
     return _tensor(storage, storage_offset, size, stride, dtype)
 
@@ -208,6 +277,7 @@ _TORCH_GLOBALS = {
                                                       np.dtype(np.uint8)),
 }
 _TORCH_DTYPE_NAMES = {("torch", name): dtype for name, dtype in TORCH_DTYPES.items()}
+_PLAIN_DTYPES = frozenset(np.dtype(dtype) for dtype in TORCH_DTYPES.values())
 
 
 class _Unpickler(pickle.Unpickler):
@@ -241,12 +311,16 @@ def _read(path: Path, read: Callable[[], Any]):
 
 
 def read_args(path: str | Path) -> dict[str, Any]:
-    """The values of a pickled `argparse.Namespace` (or dict) of plain values, as a dict."""
+    """The values of a pickled `argparse.Namespace` (or dict) of plain values, as a dict.
+    A file of more than MAX_ARGS_BYTES is refused unread."""
     path = Path(path)
 
     def read():
         with open(path, "rb") as f:
-            loaded = _Unpickler(f, _ARGS_GLOBALS, ARGS_ALLOWED).load()
+            raw = f.read(MAX_ARGS_BYTES + 1)
+        if len(raw) > MAX_ARGS_BYTES:
+            raise _Refused(f"more than the {_size(MAX_ARGS_BYTES)} an args.pickle may hold")
+        loaded = _Unpickler(io.BytesIO(raw), _ARGS_GLOBALS, ARGS_ALLOWED).load()
         if isinstance(loaded, _Namespace):
             return dict(getattr(loaded, "values", {}))
         if isinstance(loaded, dict):
@@ -255,9 +329,14 @@ def read_args(path: str | Path) -> dict[str, Any]:
     return _read(path, read)
 
 
-def read_torch(path: str | Path) -> Any:
-    """What `torch.load(path, weights_only=True)` returns, with numpy arrays for tensors."""
+def read_torch(path: str | Path, max_bytes: int = MAX_BYTES,
+               reason: str = "gst_jax.safe_pickle.MAX_BYTES") -> Any:
+    """What `torch.load(path, weights_only=True)` returns, with numpy arrays for tensors.
+    Refuses, before allocating, what would take reading it past `max_bytes` (its pickle, its
+    storages' bytes and its tensors' copies together); `reason` says in the refusal where that
+    bound comes from."""
     path = Path(path)
+    budget = _Budget(max_bytes, reason)
 
     def read():
         with open(path, "rb") as f:
@@ -273,8 +352,9 @@ def read_torch(path: str | Path) -> Any:
                 raise _Refused("not a torch file (no single <archive>/data.pkl)")
             prefix = pickles[0][: -len("data.pkl")]
             names = set(archive.namelist())
-            byteorder = (archive.read(prefix + "byteorder").decode()
-                         if prefix + "byteorder" in names else "little")
+            byteorder = "little"
+            if prefix + "byteorder" in names:
+                byteorder = _read_entry(archive, prefix + "byteorder", None, budget).decode()
             if byteorder not in ("little", "big"):
                 raise _Refused(f"unknown byte order {byteorder!r}")
             storages: dict[str, _Storage] = {}
@@ -289,14 +369,16 @@ def read_torch(path: str | Path) -> Any:
                     record = prefix + "data/" + key
                     if record not in names:
                         raise _Refused(f"no storage {record}")
-                    raw = archive.read(record)
-                    if len(raw) < numel * storage_type.dtype.itemsize:
-                        raise _Refused(f"storage {record} holds {len(raw)} bytes, fewer than "
+                    nbytes = numel * storage_type.dtype.itemsize
+                    declared = archive.getinfo(record).file_size
+                    if declared < nbytes:
+                        raise _Refused(f"storage {record} holds {declared} bytes, fewer than "
                                        f"{numel} of {storage_type.dtype}")
-                    storages[key] = _Storage(raw[: numel * storage_type.dtype.itemsize],
-                                             storage_type.dtype, byteorder)
+                    raw = _read_entry(archive, record, nbytes, budget)
+                    storages[key] = _Storage(raw, storage_type.dtype, byteorder, budget)
                 return storages[key]
 
-            with archive.open(pickles[0]) as f:
-                return _Unpickler(f, _TORCH_GLOBALS, TORCH_ALLOWED, storage).load()
+            data_pkl = _read_entry(archive, pickles[0], None, budget)
+            return _Unpickler(io.BytesIO(data_pkl), _TORCH_GLOBALS, TORCH_ALLOWED,
+                              storage).load()
     return _read(path, read)

@@ -15,6 +15,7 @@ from gst_jax.errors import RunError
 from gst_jax.io.workdir import WorkDir
 from gst_jax.model import weights
 from gst_jax.pretrained import export
+from gst_jax.pretrained.__main__ import main as pretrained_main
 from gst_jax.pretrained.export import check_aoe, check_data_config
 from gst_jax.training.loop import fit
 
@@ -37,9 +38,28 @@ def test_a_shipped_model_is_a_weights_folder_that_agrees_with_its_record(name):
     config = weights.read_config(folder)
     for key in ("model", "data", "train", "epoch", "source", "licence", "commands"):
         assert config[key] == meta[key], key
+    # config.json is covered by its own checksum: an edit of it is refused at load.
+    assert config["config_sha256"] == weights.config_digest(config)
     assert meta["commands"] and meta["source"]
     if name.startswith("crowdnav_sj"):             # made by others: their licence beside it
         assert meta["licence"].startswith("MIT") and sorted(folder.glob("LICENSE.*"))
+
+
+def test_the_list_says_why_a_model_has_no_test_figures_instead_of_nan(capsys):
+    """CrowdNav++'s models were listed as `AOE nan FOE nan` (issue 74)."""
+    pretrained_main(["list"])
+    listed = capsys.readouterr().out
+    assert "nan" not in listed.lower()
+    for name in pretrained.available():
+        meta = pretrained.load_meta(name)
+        line = next(line for line in listed.splitlines() if line.startswith(f"{name}: "))
+        if meta["test_metrics"]:
+            assert f"AOE {meta['test_metrics']['aoe']:.3f} FOE " in line
+        else:
+            assert f"AOE - FOE - (no test evaluation recorded: trained on {meta['data']['scene']}" \
+                   f"; its fixed-key check: AOE {meta['check']['aoe']:.3f} on 4 test windows " \
+                   "of sim_crowds, 2 samples)" in line
+    assert "crowdnav_sj: epoch 100, AOE - FOE - " in listed
 
 
 def test_the_wheel_carries_every_file_of_the_shipped_models():

@@ -15,7 +15,12 @@ import io
 import json
 import os
 import pickle
+import re
+import struct
+import subprocess
+import sys
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +28,7 @@ import pytest
 
 from gst_jax import crowdnav, interop
 from gst_jax.errors import DataError
+from gst_jax.pretrained.__main__ import main as pretrained_main
 from gst_jax.safe_pickle import read_args, read_torch
 
 FIXTURES = Path(__file__).parent / "fixtures"
@@ -49,8 +55,9 @@ STORAGE_CLASSES = {np.dtype(np.float32): FloatStorage, np.dtype(np.int64): LongS
 
 
 class _Storage:
-    def __init__(self, values: np.ndarray):
+    def __init__(self, values: np.ndarray, numel: int | None = None):
         self.values = values
+        self.numel = values.size if numel is None else numel    # as its pickle names it
 
 
 class _Tensor:
@@ -70,8 +77,8 @@ class _Tensor:
                                      collections.OrderedDict()))
 
 
-def write_pt(path: Path, obj, byteorder: str = "little") -> Path:
-    """`obj` (holding `_Tensor`s) as torch.save writes it."""
+def pickled(obj) -> tuple[bytes, dict[int, tuple[str, np.ndarray]]]:
+    """`obj`'s data.pkl as torch.save writes it, and its storages {id: (key, values)}."""
     storages: dict[int, tuple[str, np.ndarray]] = {}
 
     class Pickler(pickle.Pickler):
@@ -79,13 +86,19 @@ def write_pt(path: Path, obj, byteorder: str = "little") -> Path:
             if not isinstance(item, _Storage):
                 return None
             key, values = storages.setdefault(id(item), (str(len(storages)), item.values))
-            return ("storage", STORAGE_CLASSES[values.dtype], key, "cpu", values.size)
+            return ("storage", STORAGE_CLASSES[values.dtype], key, "cpu", item.numel)
 
     buffer = io.BytesIO()
     Pickler(buffer, protocol=2).dump(obj)
     data = buffer.getvalue()
     for name, module in TORCH_NAMES.items():
         data = data.replace(f"c{__name__}\n{name}\n".encode(), f"c{module}\n{name}\n".encode())
+    return data, storages
+
+
+def write_pt(path: Path, obj, byteorder: str = "little") -> Path:
+    """`obj` (holding `_Tensor`s) as torch.save writes it."""
+    data, storages = pickled(obj)
     order = "<" if byteorder == "little" else ">"
     with zipfile.ZipFile(path, "w") as archive:
         archive.writestr("archive/data.pkl", data)
@@ -178,6 +191,135 @@ def test_a_file_cannot_rewire_the_reader_nor_read_outside_a_storage(tmp_path):
         read_torch(tmp_path / "missing.pt")
 
 
+# -- refusing what would allocate far more than the file holds: each runs in a child process
+# whose heap is capped (RLIMIT_DATA), so that a reader that allocated what a file asks for
+# fails there with a MemoryError instead of taking this machine's memory.
+
+HEAP_CAP = 512 * 2**20
+# The child caps its own heap first (a preexec_fn would fork this multithreaded process).
+READ_IN_A_CHILD = """
+import resource, sys
+resource.setrlimit(resource.RLIMIT_DATA, (int(sys.argv[2]), int(sys.argv[2])))
+from gst_jax.errors import DataError
+from gst_jax.safe_pickle import read_torch
+try:
+    loaded = read_torch(sys.argv[1])
+except DataError as error:
+    print("refused:", error)
+else:
+    print("read:", {k: (v.shape, float(v.sum())) for k, v in loaded.items()})
+"""
+
+
+def read_with_capped_heap(path: Path) -> str:
+    """`read_torch(path)` in a child whose heap may not pass HEAP_CAP: its one line."""
+    root = Path(__file__).parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "OPENBLAS_NUM_THREADS": "1"}
+    child = subprocess.run([sys.executable, "-c", READ_IN_A_CHILD, str(path), str(HEAP_CAP)],
+                           cwd=root, env=env, capture_output=True, text=True)
+    assert child.returncode == 0, child.stderr[-2000:]
+    return child.stdout.strip()
+
+
+def deflated_zeros(mebibytes: int) -> bytes:
+    """A raw deflate stream of `mebibytes` MiB of zeros, 1,037 bytes a MiB: one block, fully
+    flushed so that it starts afresh, repeated (no need to compress gigabytes)."""
+    compressor = zlib.compressobj(9, zlib.DEFLATED, -15)
+    block = compressor.compress(bytes(2**20)) + compressor.flush(zlib.Z_FULL_FLUSH)
+    assert compressor.compress(bytes(2**20)) + compressor.flush(zlib.Z_FULL_FLUSH) == block
+    return block * mebibytes + compressor.flush()
+
+
+def zip_by_hand(path: Path, entries: list[tuple[str, bytes, int, int, int]]) -> Path:
+    """A zip of (name, data as stored, method (0 stored, 8 deflated), CRC-32, size) entries,
+    each header saying the size and CRC given, whatever the data inflates to."""
+    local, central = b"", b""
+    for name, data, method, crc, size in entries:
+        header = struct.pack("<HHHHHIII", 20, 0, method, 0, 0x21, crc, len(data), size)
+        central += (b"PK\x01\x02" + struct.pack("<H", 20) + header
+                    + struct.pack("<HHHHHII", len(name), 0, 0, 0, 0, 0, len(local))
+                    + name.encode())
+        local += b"PK\x03\x04" + header + struct.pack("<HH", len(name), 0) + name.encode() + data
+    end = b"PK\x05\x06" + struct.pack("<HHHHIIH", 0, 0, len(entries), len(entries),
+                                       len(central), len(local), 0)
+    path.write_bytes(local + central + end)
+    return path
+
+
+def stored(name: str, data: bytes) -> tuple[str, bytes, int, int, int]:
+    return name, data, 0, zlib.crc32(data), len(data)
+
+
+def test_a_zero_stride_tensor_is_refused_before_it_is_copied(tmp_path):
+    """620 bytes of .pt holding one float as a (40000, 40000) tensor of stride 0: a 6.4 GB
+    copy (issue 74)."""
+    one = _Storage(np.zeros(1, np.float32))
+    path = write_pt(tmp_path / "stride0.pt", {"w": _Tensor(one, 0, (40000, 40000), (0, 0))})
+    assert path.stat().st_size < 1000
+    assert read_with_capped_heap(path) == (
+        f"refused: {path}: a tensor of size (40000, 40000) (float32, stride (0, 0)) would "
+        "take 6.4 GB, more than the 1.07 GB reading one file may allocate "
+        "(gst_jax.safe_pickle.MAX_BYTES): refused before allocating it")
+
+
+def test_a_zip_entry_is_read_no_further_than_its_header_declares_and_the_bound(tmp_path):
+    """A 4 MB entry that inflates to 4 GiB was read whole (issue 74). Declared as what it
+    inflates to, it is refused by its header; declared as 1 MiB, 1 MiB of it is read, never
+    more at once (zipfile's own read() would inflate 2 GiB before cutting)."""
+    bomb = deflated_zeros(4095)
+    assert len(bomb) < 4.3e6
+    numel = 4095 * 2**20 // 4
+    data, _ = pickled({"w": _Tensor(_Storage(np.zeros(1, np.float32), numel), 0, (numel,),
+                                    (1,))})
+    honest = zip_by_hand(tmp_path / "honest.pt", [
+        stored("archive/data.pkl", data), stored("archive/byteorder", b"little"),
+        ("archive/data/0", bomb, 8, 0, 4095 * 2**20)])
+    assert read_with_capped_heap(honest) == (
+        f"refused: {honest}: archive/data/0 (4293918720 bytes by its zip header) would take "
+        "4.29 GB, more than the 1.07 GB reading one file may allocate "
+        "(gst_jax.safe_pickle.MAX_BYTES): refused before allocating it")
+
+    numel = 2**20 // 4
+    data, _ = pickled({"w": _Tensor(_Storage(np.zeros(1, np.float32), numel), 0, (numel,),
+                                    (1,))})
+    lying = zip_by_hand(tmp_path / "lying.pt", [
+        stored("archive/data.pkl", data), stored("archive/byteorder", b"little"),
+        ("archive/data/0", bomb, 8, zlib.crc32(bytes(2**20)), 2**20)])
+    assert read_with_capped_heap(lying) == "read: {'w': ((262144,), 0.0)}"
+
+    # The pickle too: by its header, before it is inflated.
+    pickle_bomb = zip_by_hand(tmp_path / "pickle.pt", [
+        ("archive/data.pkl", bomb, 8, 0, 4095 * 2**20)])
+    assert read_with_capped_heap(pickle_bomb).startswith(
+        f"refused: {pickle_bomb}: archive/data.pkl (4293918720 bytes by its zip header) would "
+        "take 4.29 GB")
+
+
+def test_a_caller_bounds_what_a_file_may_make(tmp_path):
+    storage = _Storage(np.arange(4, dtype=np.float32))
+    path = write_pt(tmp_path / "small.pt", {"a": _Tensor(storage, 0, (4,), (1,)),
+                                            "b": _Tensor(storage, 0, (2, 4), (0, 1))})
+    loaded = read_torch(path, max_bytes=2000)
+    np.testing.assert_array_equal(loaded["b"], [[0, 1, 2, 3], [0, 1, 2, 3]])
+    # Its pickle, its 16 bytes of storage, and the 16 + 32 bytes of its two tensors.
+    pickle_bytes = zipfile.ZipFile(path).getinfo("archive/data.pkl").file_size
+    total = len(b"little") + pickle_bytes + 16 + 16 + 32
+    read_torch(path, max_bytes=total)
+    with pytest.raises(DataError, match=r"a tensor of size \(2, 4\) \(float32, stride \(0, 1\)\) "
+                                        r"would take 32 bytes, more than the \d+ bytes reading "
+                                        r"one file may allocate \(the test's\)"):
+        read_torch(path, max_bytes=total - 1, reason="the test's")
+    # A (numpy) dtype that is not one of torch's is no tensor's (protocol 0, by hand).
+    v3 = (b"ctorch._utils\n_rebuild_tensor_v3\n("
+          b"(Vstorage\nctorch\nFloatStorage\nV0\nVcpu\nI1\ntQ"      # storage 0, 1 element
+          b"I0\n(I1\nt(I1\ntI00\nN"                                 # offset, size, stride, ...
+          b"cnumpy\ndtype\n(VV8\ntRtR.")                               # numpy.dtype("V8")
+    v3 = zip_by_hand(tmp_path / "v3.pt", [stored("archive/data.pkl", v3),
+                                          stored("archive/data/0", bytes(4))])
+    with pytest.raises(DataError, match="a tensor whose dtype is not a torch dtype"):
+        read_torch(v3)
+
+
 # -- reading what torch writes
 
 
@@ -227,25 +369,107 @@ def test_reads_big_endian_files_and_offsets_into_shared_storages(tmp_path):
 
 # -- CrowdNav++'s checkpoint folder, end to end
 
+PARITY = np.load(FIXTURES / "crowdnav_parity.npz")
+ARGS = json.loads(str(PARITY["seed1000/args"]))
+STATE_DICT = {key[len("seed1000/state_dict/"):]: PARITY[key] for key in PARITY.files
+              if key.startswith("seed1000/state_dict/")}
 
-def test_crowdnav_load_reads_a_checkpoint_folder_and_predicts_as_crowdnav_does(tmp_path):
-    fixture = np.load(FIXTURES / "crowdnav_parity.npz")
-    prefix = "seed1000/state_dict/"
-    state_dict = collections.OrderedDict(
-        (key[len(prefix):], _Tensor.of(fixture[key])) for key in fixture.files
-        if key.startswith(prefix))
-    args = json.loads(str(fixture["seed1000/args"]))
-    folder = tmp_path / "sj" / "checkpoint"
+
+def crowdnav_folder(root: Path, args: dict = ARGS, state_dict: dict = STATE_DICT,
+                    **more) -> Path:
+    """A CrowdNav++ checkpoint folder (`root/sj/checkpoint/`: args.pickle, epoch_N.pt) as
+    CrowdNav++ writes it; `more` joins the .pt's top-level entries."""
+    folder = root / "sj" / "checkpoint"
     folder.mkdir(parents=True)
     with open(folder / "args.pickle", "wb") as f:
         pickle.dump(argparse.Namespace(**args), f)            # as CrowdNav++ writes it
-    write_pt(folder / f"epoch_{args['num_epochs']}.pt",
-             {"epoch": args["num_epochs"], "model_state_dict": state_dict,
-              "train_loss_epoch": np.float64(-1.25)})
+    tensors = collections.OrderedDict((k, _Tensor.of(v)) for k, v in state_dict.items())
+    epoch = args.get("num_epochs", 100)
+    if type(epoch) is int and 0 < epoch < 10**6:
+        write_pt(folder / f"epoch_{epoch}.pt", {"epoch": epoch, "model_state_dict": tensors,
+                                                "train_loss_epoch": np.float64(-1.25), **more})
+    return root / "sj"
 
-    assert read_args(folder / "args.pickle") == args
-    predictor = crowdnav.load(tmp_path / "sj")
-    output_traj, output_mask = predictor(fixture["input_traj"], fixture["input_mask"])
-    np.testing.assert_allclose(np.asarray(output_traj), fixture["seed1000/output_traj"],
+
+def test_crowdnav_load_reads_a_checkpoint_folder_and_predicts_as_crowdnav_does(tmp_path):
+    folder = crowdnav_folder(tmp_path)
+    assert read_args(folder / "checkpoint" / "args.pickle") == ARGS
+    predictor = crowdnav.load(folder)
+    output_traj, output_mask = predictor(PARITY["input_traj"], PARITY["input_mask"])
+    np.testing.assert_allclose(np.asarray(output_traj), PARITY["seed1000/output_traj"],
                                atol=1e-5, rtol=0)
-    np.testing.assert_array_equal(np.asarray(output_mask), fixture["seed1000/output_mask"])
+    np.testing.assert_array_equal(np.asarray(output_mask), PARITY["seed1000/output_mask"])
+
+
+@pytest.mark.parametrize("changes, problem", [
+    ({"num_epochs": 10**5000}, "num_epochs is an integer of 16610 bits: must be an integer "
+                               "from 1 to 1000000"),
+    ({"embedding_size": "sixty-four"}, "embedding_size is 'sixty-four': must be an integer "
+                                       "from 1 to 4096"),
+    ({"obs_seq_len": None}, "has no obs_seq_len, one of gst_updated's args that gst_jax "
+                            "reads"),
+    ({"spatial_num_heads": 7}, "spatial_num_heads 7 does not divide embedding_size 64"),
+    ({"pred_seq_len": 10**6}, "pred_seq_len is 1000000: must be an integer from 1 to 1000"),
+    ({"lr": float("nan")}, "lr is nan: must be a finite number in (0, 1000]"),
+    ({"ghost": "no"}, "ghost is 'no': must be true or false"),
+])
+def test_hostile_args_are_refused_in_one_line_naming_file_and_field(tmp_path, changes, problem):
+    """A bare ValueError (num_epochs 10**5000), TypeError (a word for a width) or KeyError
+    (a field missing) before (issue 74)."""
+    args = {k: v for k, v in {**ARGS, **changes}.items() if v is not None}
+    folder = crowdnav_folder(tmp_path, args)
+    args_pickle = folder / "checkpoint" / "args.pickle"
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(folder)
+    assert str(refused.value) == f"{args_pickle}: {problem}"
+    with pytest.raises(DataError, match=re.escape(problem)):
+        crowdnav.from_state_dict(STATE_DICT, args)
+    # The export command says it in one line too.
+    with pytest.raises(SystemExit) as error:
+        pretrained_main(["export", str(folder), "--out", str(tmp_path / "out")])
+    assert str(error.value) == f"error: {args_pickle}: {problem}"
+
+
+def _without(name: str) -> dict:
+    return {k: v for k, v in STATE_DICT.items() if k != name}
+
+
+def _nan_at_first(name: str) -> dict:
+    broken = STATE_DICT[name].copy()
+    broken.flat[0] = np.nan
+    return {**STATE_DICT, name: broken}
+
+
+@pytest.mark.parametrize("state_dict, problem", [
+    (_without("lstm.weight_hh_l0"), "has no tensor lstm.weight_hh_l0, which its model reads"),
+    ({}, "holds no state dict (a mapping of names to tensors)"),
+    ({**STATE_DICT, "lstm.weight_ih_l0": STATE_DICT["lstm.weight_ih_l0"].T.copy()},
+     "lstm.weight_ih_l0 is of shape [64, 256], where its model's is [256, 64]"),
+    ({**STATE_DICT, "hidden2pos.bias": np.arange(5)},
+     "hidden2pos.bias is int64, not a float32 (or float64) tensor"),
+    (_nan_at_first("hidden2pos.weight"),
+     "hidden2pos.weight holds 1 non-finite value(s) of 320: parameters must be finite"),
+])
+def test_a_pt_that_is_not_its_models_is_refused_naming_file_and_tensor(tmp_path, state_dict,
+                                                                       problem):
+    """A .pt missing a key of the model raised a bare KeyError; one of another shape or NaN
+    loaded (issue 74)."""
+    folder = crowdnav_folder(tmp_path, state_dict=state_dict)
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(folder)
+    assert str(refused.value) == f"{folder / 'checkpoint' / 'epoch_100.pt'}: {problem}"
+
+
+def test_a_checkpoint_may_allocate_only_what_its_models_shapes_allow(tmp_path):
+    """Its args say how large its model is: a .pt making far more is refused before the
+    allocation, even below safe_pickle's default bound."""
+    one = _Storage(np.zeros(1, np.float32))
+    folder = crowdnav_folder(tmp_path, optimizer_state_dict={
+        "state": {0: {"exp_avg": _Tensor(one, 0, (2000, 2000), (0, 0))}}})
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(folder)
+    assert str(refused.value) == (
+        f"{folder / 'checkpoint' / 'epoch_100.pt'}: a tensor of size (2000, 2000) (float32, "
+        "stride (0, 0)) would take 16 MB, more than the 5.38 MB reading one file may allocate "
+        "(8 times the 541224 bytes of its model's parameters as float64 by args.pickle, and "
+        "1 MiB): refused before allocating it")

@@ -14,6 +14,7 @@ import hashlib
 import json
 import shutil
 import sys
+import warnings
 from pathlib import Path
 
 import jax
@@ -61,6 +62,34 @@ def _one_line(error: pytest.ExceptionInfo) -> str:
     message = str(error.value)
     assert "\n" not in message
     return message
+
+
+def _config_sha256(config: dict) -> str:
+    """config.json's own checksum as documented: SHA-256 of its other fields as canonical
+    JSON (sorted keys, no spaces, ASCII). NaN is written as JSON's `NaN`, as a hostile hand
+    would: the loader must refuse it by its range, not by failing to encode it."""
+    fields = {k: v for k, v in config.items() if k != "config_sha256"}
+    return hashlib.sha256(json.dumps(fields, sort_keys=True, separators=(",", ":"))
+                          .encode()).hexdigest()
+
+
+def _hostile(exported: Path, to: Path, tensors: dict | None = None,
+             model: dict | None = None, **fields) -> Path:
+    """A copy of the export with its tensors, model fields or other fields changed, and both
+    checksums recomputed to match: only the loader's own checks stand between it and a
+    model."""
+    folder = _copy(exported, to)
+    config = json.loads((folder / "config.json").read_text())
+    if tensors is not None:
+        safetensors.numpy.save_file(tensors, str(folder / "model.safetensors"))
+        config["sha256"] = hashlib.sha256((folder / "model.safetensors").read_bytes()).hexdigest()
+    for section, changes in (("model", model or {}), *(
+            (name, value) for name, value in fields.items() if isinstance(value, dict))):
+        config[section] = {**config[section], **changes}
+    config.update({k: v for k, v in fields.items() if not isinstance(v, dict)})
+    config["config_sha256"] = _config_sha256(config)
+    (folder / "config.json").write_text(json.dumps(config, indent=2))
+    return folder
 
 
 def test_a_trained_run_exports_and_loads_back_to_the_same_parameters_and_predictions(trained):
@@ -142,16 +171,10 @@ def test_weights_of_another_layout_than_their_config_are_refused_in_one_line(tra
     tensors = safetensors.numpy.load_file(str(exported / "model.safetensors"))
 
     def rewritten(name: str, changed: dict, dropped: tuple = ()) -> Path:
-        """The export with its tensors changed and its checksum matching them: only the
+        """The export with its tensors changed and its checksums matching them: only the
         layout check stands between the file and the model."""
-        folder = _copy(exported, tmp_path / name)
         kept = {k: v for k, v in {**tensors, **changed}.items() if k not in dropped}
-        safetensors.numpy.save_file(kept, str(folder / "model.safetensors"))
-        config = json.loads((folder / "config.json").read_text())
-        config["sha256"] = hashlib.sha256(
-            (folder / "model.safetensors").read_bytes()).hexdigest()
-        (folder / "config.json").write_text(json.dumps(config))
-        return folder
+        return _hostile(exported, tmp_path / name, kept)
 
     wrong = rewritten("shape", {"lstm/weight_ih": tensors["lstm/weight_ih"].T.copy()})
     with pytest.raises(RunError) as error:
@@ -171,6 +194,122 @@ def test_weights_of_another_layout_than_their_config_are_refused_in_one_line(tra
         evaluate.main([str(wrong), "--scene", "zara1", "--max-windows", "1"])
     assert str(error.value).startswith("error: ") and "lstm/weight_ih is" in str(error.value)
     assert "\n" not in str(error.value)
+
+
+def test_non_finite_weights_are_refused_in_one_line_naming_file_and_tensor(trained, tmp_path):
+    """NaN or inf parameters with a recomputed checksum loaded and predicted NaN for every
+    person (issue 74)."""
+    _, exported = trained
+    tensors = safetensors.numpy.load_file(str(exported / "model.safetensors"))
+    weight = tensors["lstm/weight_ih"].copy()
+    weight[3, 5], weight[7, 1] = np.nan, -np.inf
+    nan = _hostile(exported, tmp_path / "nan", {**tensors, "lstm/weight_ih": weight})
+    with pytest.raises(RunError) as error:
+        load_model(nan)
+    assert _one_line(error) == (
+        f"{nan / 'model.safetensors'}: tensor lstm/weight_ih holds 2 non-finite value(s) of "
+        "1024 (the first, nan, at index [3, 5]): parameters must be finite")
+    inf = _hostile(exported, tmp_path / "inf", {
+        **tensors, "edge_selector/mlp_out_bias": np.array(np.inf, np.float32)})
+    with pytest.raises(RunError, match=r"inf/model.safetensors: tensor edge_selector/"
+                                       r"mlp_out_bias holds 1 non-finite value\(s\) of 1 "
+                                       r"\(the first, inf, at index \[\]\)"):
+        weights.load(inf)
+    # Nor is such a model written.
+    broken = jax.tree.map(lambda leaf: leaf * np.nan, load_model(exported).params)
+    with pytest.raises(RunError, match=r"model.safetensors \(not written\): tensor "):
+        weights.save(tmp_path / "not_written", TINY_MODEL, broken)
+    assert not (tmp_path / "not_written").exists()
+
+
+@pytest.mark.parametrize("section, field, value, problem", [
+    ("model", "pred_len", 10**6, "must be an integer from 1 to 1000"),
+    ("model", "pred_len", 0, "must be an integer from 1 to 1000"),
+    ("model", "obs_len", -3, "must be an integer from 1 to 1000"),
+    ("model", "step_s", float("nan"), "must be a finite number in (0, 60]"),
+    ("model", "dropout", 1.0, "must be a finite number in [0, 1)"),
+    ("model", "pred_len", 12.0, "must be an integer from 1 to 1000"),
+    ("model", "attention", "sideways", "must be one of release, masked"),
+    ("data", "scale", float("inf"), "must be a finite number in (0, 1e+06]"),
+    ("train", "epochs", 0, "must be an integer from 1 to 1000000"),
+    (None, "epoch", -1, "must be an integer from 0 to 1000000"),
+])
+def test_config_fields_out_of_range_are_refused_naming_file_field_and_value(
+        trained, tmp_path, section, field, value, problem):
+    """Values that keep the parameters' layout loaded, checksums recomputed (issue 74)."""
+    _, exported = trained
+    changes = {section: {field: value}} if section else {field: value}
+    folder = _hostile(exported, tmp_path / "hostile", **changes)
+    with pytest.raises(RunError) as error:
+        weights.load(folder)
+    name = f"{section}.{field}" if section else field
+    shown = "nan" if value != value else "inf" if value == float("inf") else repr(value)
+    assert _one_line(error) == f"{folder / 'config.json'}: {name} is {shown}: {problem}"
+
+
+def test_save_writes_nothing_that_load_would_refuse(trained, tmp_path):
+    _, exported = trained
+    params = load_model(exported).params
+    with pytest.raises(RunError) as error:
+        weights.save(tmp_path / "grid", dataclasses.replace(TINY_MODEL, pred_len=0), params)
+    assert _one_line(error) == (f"{tmp_path / 'grid' / 'config.json'} (not written): "
+                                "model.pred_len is 0: must be an integer from 1 to 1000")
+    with pytest.raises(RunError, match=r"config.json \(not written\): its record holds a value "
+                                       "that JSON cannot"):
+        weights.save(tmp_path / "record", TINY_MODEL, params, {"crowdnav_args": {"lr": {1}}})
+    assert not (tmp_path / "grid").exists() and not (tmp_path / "record").exists()
+
+
+def test_an_edit_of_config_json_is_detected_by_its_checksum(trained, tmp_path):
+    _, exported = trained
+    config = json.loads((exported / "config.json").read_text())
+    assert config["config_sha256"] == _config_sha256(config)
+    # Reformatted (indent, key order) it is the same content, and loads.
+    same = _copy(exported, tmp_path / "reformatted")
+    (same / "config.json").write_text(json.dumps(dict(reversed(config.items())), indent=7))
+    assert weights.load(same).config == config
+    # An edit within the ranges that keeps the layout: refused.
+    for field, value in (("pred_len", 8), ("step_s", 0.5)):
+        edited = _copy(exported, tmp_path / field)
+        (edited / "config.json").write_text(json.dumps(
+            {**config, "model": {**config["model"], field: value}}, indent=2))
+        with pytest.raises(RunError) as error:
+            weights.load(edited)
+        assert _one_line(error).startswith(f"{edited / 'config.json'}: its fields' SHA-256 ")
+        assert error.value.args[0].endswith("config_sha256 records: the file was edited or "
+                                            "damaged after export")
+    # A NaN where no range is checked cannot be covered: refused too.
+    odd = _copy(exported, tmp_path / "odd")
+    (odd / "config.json").write_text(json.dumps({**config, "crowdnav_args": {"lr": np.nan}}))
+    with pytest.raises(RunError, match="holds a NaN or infinite value, which its "
+                                       "config_sha256 cannot cover"):
+        weights.load(odd)
+
+
+def test_a_folder_exported_before_config_json_had_a_checksum_loads_with_a_warning(
+        trained, tmp_path):
+    """Models handed out before keep loading (range-checked), and say how to re-export."""
+    _, exported = trained
+    old = _copy(exported, tmp_path / "old")
+    config = json.loads((old / "config.json").read_text())
+    del config["config_sha256"]
+    (old / "config.json").write_text(json.dumps(config, indent=2))
+    with pytest.warns(UserWarning, match=r"old/config.json has no config_sha256 \(exported "
+                                         r"before .* export .*old --out NEW_FOLDER"):
+        loaded = load_model(old)
+    for mine, theirs in zip(_leaves(loaded.params), _leaves(load_model(exported).params)):
+        assert np.array_equal(mine, theirs)
+    with pytest.warns(UserWarning, match="has no config_sha256"):
+        pretrained_main(["export", str(old), "--out", str(tmp_path / "new")])
+    assert json.loads((tmp_path / "new" / "config.json").read_text())["config_sha256"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        weights.load(tmp_path / "new")
+    # Its fields are checked all the same.
+    config["model"]["pred_len"] = 0
+    (old / "config.json").write_text(json.dumps(config, indent=2))
+    with pytest.raises(RunError, match="model.pred_len is 0: must be an integer from 1 to"):
+        weights.load(old)
 
 
 def test_an_exported_folder_is_a_model_name_for_the_commands(trained, capsys):

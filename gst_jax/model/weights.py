@@ -13,12 +13,24 @@ says what they are:
      "model": {...},                  # the ModelConfig: the tree's paths and shapes follow
      "data": {...}, "train": {...},   # DataConfig and TrainConfig of the training (provenance)
      "epoch": 100, "source": "...",   # the epoch and where the parameters came from
-     "licence": null, ...}            # the licence and attribution where others made them
+     "licence": null, ...,            # the licence and attribution where others made them
+     "config_sha256": "..."}          # of this file's other fields (`config_digest`)
 
-`load` checks the checksum, then that the file holds exactly the paths, shapes and dtype of
+`load` checks every field of config.json against its range (`MODEL_FIELDS`, `DATA_FIELDS`,
+`TRAIN_FIELDS`: a time grid of 10^6 or 0 steps or a NaN step is refused, not compiled), then
+config.json's checksum: `config_sha256` is the SHA-256 of its other fields as canonical JSON
+(sorted keys, no spaces, ASCII; `config_digest`), so an edit that keeps the parameters' layout
+(`pred_len`, `obs_len`, `step_s`, `dropout`, the provenance) is detected like a damaged file.
+Folders exported before config.json had a checksum have no `config_sha256`: they still load,
+range-checked, with a warning saying how to re-export them (their fields are not damaged by
+being old, and refusing them would strand every model users have handed out; the ranges are
+what keep a wrong value out, the checksum what tells an edit). The shipped models all carry
+one. Then the weights' checksum, that the file holds exactly the paths, shapes and dtype of
 `init_params(model)` (what a training of that ModelConfig holds:
-`abstract_train_state(model).params`), and refuses anything else in one line naming the file
-(`RunError`): a missing or damaged file, a file of another model. `pretrained:NAME` names a
+`abstract_train_state(model).params`), and that every value is finite (a NaN or infinite
+parameter would make every prediction NaN). Anything else is refused in one line naming the
+file and the field or tensor (`RunError`): a missing or damaged file, a file of another
+model, a value out of range. `pretrained:NAME` names a
 model shipped in the package (`gst_jax/pretrained/NAME/`: these two files and its record,
 meta.json). `python -m gst_jax.pretrained export MODEL --out DIR` writes such a folder from any
 model, `load_model(DIR)` and `crowdnav.load(DIR)` read it.
@@ -30,17 +42,21 @@ import dataclasses
 import functools
 import hashlib
 import json
+import math
+import warnings
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import safetensors.numpy
 
-from gst_jax.config import ModelConfig
+from gst_jax.config import (ATTENTION_KINDS, PROTOCOLS, SCHEDULES, TEMPORAL_MODELS, DataConfig,
+                            ModelConfig, TrainConfig)
 from gst_jax.errors import RunError
 from gst_jax.model.gst import init_params
+from gst_jax.model.heads import HEADS
 
 FORMAT = "gst_jax.weights/1"
 WEIGHTS_FILE = "model.safetensors"
@@ -50,6 +66,121 @@ SHIPPED = Path(__file__).parents[1] / "pretrained"
 PRETRAINED = "pretrained:"
 # A shipped model's record: its configs, how it was made, its test metrics and fixed-key check.
 SHIPPED_RECORD = "meta.json"
+# config.json's own checksum: of its other fields, as canonical JSON (`config_digest`).
+CONFIG_DIGEST = "config_sha256"
+
+# A field's range: `check(value)` is None where the value is in it, else what it must be.
+Check = Callable[[Any], "str | None"]
+
+
+def integers(low: int, high: int) -> Check:
+    """Integers (not booleans) from low to high."""
+    def check(value):
+        if type(value) is not int or not low <= value <= high:
+            return f"must be an integer from {low} to {high}"
+    return check
+
+
+def numbers(low: float, high: float, *, low_open: bool = False, high_open: bool = False,
+            optional: bool = False) -> Check:
+    """Finite numbers in [low, high], ( where an end is open; or null where optional."""
+    interval = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+
+    def check(value):
+        if value is None and optional:
+            return None
+        if (type(value) not in (int, float) or not math.isfinite(value)
+                or value < low or value > high or (low_open and value == low)
+                or (high_open and value == high)):
+            return f"must be a finite number in {interval}" + (" or null" if optional else "")
+    return check
+
+
+def one_of(choices: Callable[[], Any]) -> Check:
+    """One of `choices()` (read when checked: HEADS may grow)."""
+    def check(value):
+        known = tuple(choices())
+        if not isinstance(value, str) or value not in known:
+            return f"must be one of {', '.join(known)}"
+    return check
+
+
+def boolean(value) -> str | None:
+    return None if type(value) is bool else "must be true or false"
+
+
+def text(value) -> str | None:
+    return None if value is None or isinstance(value, str) else "must be a string or null"
+
+
+def shown(value) -> str:
+    """A value as a message shows it: short, and an integer of 10^5000 without converting it
+    (Python refuses to write integers of more than 4300 digits)."""
+    if type(value) is int and value.bit_length() > 64:
+        return f"{'-' if value < 0 else ''}an integer of {value.bit_length()} bits"
+    written = repr(value)
+    return written if len(written) <= 40 else written[:37] + "..."
+
+
+def field_problem(values: Any, fields: Mapping[str, Check], where: str = "",
+                  retired: frozenset = frozenset(), known_only: bool = True) -> str | None:
+    """What is wrong with the first field of `values` out of its range, in words naming the
+    field (`where.name`, or `name` where `where` is empty) and its value; None where every
+    field is in range. Fields that `values` lacks are not checked (they take their defaults);
+    names not in `fields` are refused where known_only (but `retired` ones, which from_dict
+    drops, pass)."""
+    prefix = f"{where}." if where else ""
+    if not isinstance(values, Mapping):
+        return f"{where or 'it'} is {shown(values)}, not an object of fields"
+    for name, value in values.items():
+        if name in fields:
+            if (problem := fields[name](value)) is not None:
+                return f"{prefix}{name} is {shown(value)}: {problem}"
+        elif known_only and name not in retired:
+            return f"{where or 'it'} has a field {shown(name)} that it does not know"
+    return None
+
+
+# The ranges of config.json's fields. A model's widths and depths are checked against the
+# tensors too; their bounds, far beyond any model of this kind (the paper's: d = 32, three
+# layers), stop absurd values before any work is spent on them (a depth of 10^6 would be
+# traced layer by layer). The time grid, the dropout rate, the neighbourhood and the switches
+# shape no tensor: their ranges are all that keeps a wrong value out (a horizon of 10^6 steps
+# would be compiled and run; 1000 steps is minutes of walking at any step).
+MAX_STEPS = 1000
+MODEL_FIELDS: dict[str, Check] = {
+    "node_dim": integers(1, 4096), "edge_dim": integers(1, 8192),
+    "max_edge_heads": integers(0, 1024), "num_edge_heads": integers(0, 1024),
+    "ghost": boolean, "encoder_layers": integers(1, 64), "encoder_heads": integers(1, 1024),
+    "encoder_ff_dim": integers(1, 65536), "lstm_hidden": integers(1, 4096),
+    "dropout": numbers(0, 1, high_open=True), "output": one_of(lambda: HEADS),
+    "temporal": one_of(lambda: TEMPORAL_MODELS), "step_s": numbers(0, 60, low_open=True),
+    "obs_len": integers(1, MAX_STEPS), "pred_len": integers(1, MAX_STEPS),
+    "candidates": integers(0, 1_000_000), "attention": one_of(lambda: ATTENTION_KINDS)}
+DATA_FIELDS: dict[str, Check] = {
+    "scene": text, "protocol": one_of(lambda: PROTOCOLS),
+    "train_fraction": numbers(0, 1, low_open=True), "val_fraction": numbers(0, 1, high_open=True),
+    "data_dir": text, "drop_off_grid": boolean, "data": text,
+    "fps": numbers(0, 10_000, low_open=True, optional=True),
+    "scale": numbers(0, 1e6, low_open=True), "columns": text}
+TRAIN_FIELDS: dict[str, Check] = {
+    "epochs": integers(1, 10**6), "schedule": one_of(lambda: SCHEDULES),
+    "batch_size": integers(1, 10**6), "learning_rate": numbers(0, 1e3, low_open=True),
+    "lr_decay": numbers(0, 1e3, low_open=True), "lr_decay_every": integers(1, 10**6),
+    "tau_start": numbers(0, 1e3, low_open=True), "tau_end": numbers(0, 1e3, low_open=True),
+    "rotate": boolean, "fully_detected_only": boolean, "seed": integers(-2**63, 2**63 - 1),
+    "checkpoint_every": integers(1, 10**6), "eval_every": integers(0, 10**6),
+    "max_train_windows": integers(0, 10**12), "init": text}
+
+
+def sha256_text(value) -> str | None:
+    if isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value):
+        return None
+    return "must be a SHA-256: 64 lowercase hex digits"
+
+
+RECORD_FIELDS: dict[str, Check] = {"sha256": sha256_text, CONFIG_DIGEST: sha256_text,
+                                   "epoch": integers(0, 10**6), "source": text, "licence": text}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,20 +266,40 @@ def flatten_abstract(tree) -> dict[str, Any]:
             for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
 
+def config_digest(config: Mapping) -> str:
+    """SHA-256 of a config.json's fields other than `config_sha256`, as canonical JSON: sorted
+    keys, no spaces, ASCII (so that indenting or reordering the file keeps it). A value JSON
+    cannot hold (NaN) has no digest: ValueError."""
+    fields = {k: v for k, v in config.items() if k != CONFIG_DIGEST}
+    canonical = json.dumps(fields, sort_keys=True, separators=(",", ":"), ensure_ascii=True,
+                           allow_nan=False)
+    return hashlib.sha256(canonical.encode("ascii")).hexdigest()
+
+
 def save(folder: str | Path, model_config: ModelConfig, params, record: Mapping | None = None
          ) -> Path:
     """Write `folder/model.safetensors` and `folder/config.json` (the format, the checksum,
-    the ModelConfig and `record`: data, train, epoch, source, licence, ...); returns folder.
-    Refuses parameters that are not those of `model_config`."""
+    the ModelConfig, `record`: data, train, epoch, source, licence, ..., and config.json's own
+    checksum); returns folder. Refuses parameters that are not those of `model_config`, or not
+    finite, and a config.json that `load` would refuse."""
     folder = Path(folder)
     tensors = flatten(params)
-    _check_layout(tensors, model_config, f"{folder / WEIGHTS_FILE} (not written)")
+    what = f"{folder / WEIGHTS_FILE} (not written)"
+    _check_layout(tensors, model_config, what)
+    _check_finite(tensors, what)
     raw = safetensors.numpy.save(tensors)
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / WEIGHTS_FILE).write_bytes(raw)
     config = {"format": FORMAT, "sha256": hashlib.sha256(raw).hexdigest(),
               "model": dataclasses.asdict(model_config), **(record or {})}
-    (folder / CONFIG_FILE).write_text(json.dumps(config, indent=2) + "\n")
+    _check_fields(config, f"{folder / CONFIG_FILE} (not written)")
+    try:
+        config[CONFIG_DIGEST] = config_digest(config)
+        text = json.dumps(config, indent=2) + "\n"
+    except (TypeError, ValueError) as error:     # a record of others: a set, a NaN, ...
+        raise RunError(f"{folder / CONFIG_FILE} (not written): its record holds a value that "
+                       f"JSON cannot ({error})") from None
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / WEIGHTS_FILE).write_bytes(raw)
+    (folder / CONFIG_FILE).write_text(text)
     return folder
 
 
@@ -172,14 +323,18 @@ def read_config(spec: str | Path) -> dict:
 
 def load(spec: str | Path) -> Weights:
     """Read a weights folder (`pretrained:NAME`, a folder, its model.safetensors or config.json),
-    checked: checksum, then the paths, shapes and dtype its ModelConfig expects."""
+    checked: config.json's fields and checksum, the weights' checksum, then the paths, shapes
+    and dtype its ModelConfig expects and that every value is finite."""
     folder = folder_of(spec)
     config = read_config(folder)
+    config_path = folder / CONFIG_FILE
+    _check_fields(config, str(config_path))
+    _check_config_digest(config, config_path)
     path = folder / WEIGHTS_FILE
     try:
         model_config = ModelConfig.from_dict(config["model"])
     except (TypeError, ValueError) as error:
-        raise RunError(f"{folder / CONFIG_FILE}: not a model config ({error})") from None
+        raise RunError(f"{config_path}: not a model config ({error})") from None
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -196,11 +351,64 @@ def load(spec: str | Path) -> Weights:
     except Exception as error:  # safetensors raises its own error type on a malformed file
         raise RunError(f"{path}: not a safetensors file ({error})") from None
     _check_layout(tensors, model_config, str(path))
+    _check_finite(tensors, str(path))
     like = _abstract_params(model_config)
     names = list(flatten_abstract(like))
     params = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(like),
                                           [jnp.asarray(tensors[name]) for name in names])
     return Weights(folder, model_config, params, config)
+
+
+def _check_fields(config: Mapping, what: str):
+    """Refuse, in one line naming the field and its value, a config.json field out of its
+    range (the model's, the data's and training's, the record's)."""
+    problem = (field_problem(config["model"], MODEL_FIELDS, "model")
+               or field_problem(config.get("data", {}), DATA_FIELDS, "data",
+                                DataConfig.RETIRED)
+               or field_problem(config.get("train", {}), TRAIN_FIELDS, "train",
+                                TrainConfig.RETIRED)
+               or field_problem({k: v for k, v in config.items() if k in RECORD_FIELDS},
+                                RECORD_FIELDS))
+    commands = config.get("commands", [])
+    if problem is None and not (isinstance(commands, list)
+                                and all(isinstance(c, str) for c in commands)):
+        problem = f"commands is {shown(commands)}: must be a list of strings"
+    if problem is not None:
+        raise RunError(f"{what}: {problem}")
+
+
+def _check_config_digest(config: Mapping, path: Path):
+    """config.json's checksum: refused where it does not match; warned where it has none
+    (exported before config.json had one)."""
+    recorded = config.get(CONFIG_DIGEST)
+    if recorded is None:
+        warnings.warn(f"{path} has no {CONFIG_DIGEST} (exported before config.json had a "
+                      "checksum): its fields are in range, but an edit within their ranges "
+                      "cannot be detected; `python -m gst_jax.pretrained export "
+                      f"{path.parent} --out NEW_FOLDER` writes a copy that has one",
+                      stacklevel=3)
+        return
+    try:
+        digest = config_digest(config)
+    except ValueError:      # NaN or infinity where no range is checked (crowdnav_args, ...)
+        raise RunError(f"{path}: holds a NaN or infinite value, which its {CONFIG_DIGEST} "
+                       "cannot cover: the file was edited after export") from None
+    if digest != recorded:
+        raise RunError(f"{path}: its fields' SHA-256 {digest[:16]}... is not the "
+                       f"{recorded[:16]}... its {CONFIG_DIGEST} records: the file was edited or "
+                       "damaged after export")
+
+
+def _check_finite(tensors: Mapping[str, np.ndarray], what: str):
+    """Refuse, in one line naming the tensor, parameters that are NaN or infinite: one would
+    make every prediction NaN."""
+    for name, tensor in tensors.items():
+        finite = np.isfinite(tensor)
+        if not finite.all():
+            where = tuple(int(i) for i in np.argwhere(~finite)[0])
+            raise RunError(f"{what}: tensor {name} holds {int((~finite).sum())} non-finite "
+                           f"value(s) of {finite.size} (the first, {tensor[where]}, at index "
+                           f"{list(where)}): parameters must be finite")
 
 
 def _check_layout(tensors: Mapping[str, np.ndarray], model_config: ModelConfig, what: str):

@@ -45,3 +45,28 @@ def load_pretrained(name: str) -> tuple[ModelConfig, dict]:
     against its checksum and its config's parameter layout."""
     loaded = weights.load(folder(name))
     return loaded.model_config, loaded.params
+
+
+def describe(name: str) -> list[str]:
+    """A shipped model in `python -m gst_jax.pretrained list`'s lines: its epoch and test AOE /
+    FOE (metres), or '-' and why where its record has none (a model others trained on data
+    that is not bundled: its fixed-key check is all that was measured), its AOE / FOE per
+    scene for the general model, and its licence."""
+    meta = load_meta(name)
+    metrics = meta.get("test_metrics")
+    if metrics:
+        scores = (f"AOE {metrics['aoe']:.3f} FOE {metrics['foe']:.3f} "
+                  f"({metrics.get('protocol', 'test split')})")
+    else:
+        check = meta["check"]
+        checked = check.get("data", meta["data"])["scene"]
+        scores = (f"AOE - FOE - (no test evaluation recorded: trained on "
+                  f"{meta['data']['scene']}; its fixed-key check: AOE {check['aoe']:.3f} on "
+                  f"{check['windows']} test windows of {checked}, {check['samples']} samples)")
+    lines = [f"{name}: epoch {meta['epoch']}, {scores}"]
+    if per_scene := meta.get("test_metrics_per_scene"):      # the general model
+        lines.append("  per scene AOE / FOE: " + ", ".join(
+            f"{scene} {m['aoe']:.3f} / {m['foe']:.3f}" for scene, m in per_scene.items()))
+    if meta.get("licence"):
+        lines.append(f"  licence: {meta['licence']}")
+    return lines

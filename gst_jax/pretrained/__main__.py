@@ -51,20 +51,12 @@ def command(args, command_line: str) -> None:
         print("written:", export.export_weights(args.run, args.out, **given) if args.out
               else export.export(args.run, args.name, check or None, **given))
         return
-    metas = {name: pretrained.load_meta(name) for name in pretrained.available()}
     if args.json:
-        print(json.dumps(metas, indent=2))
+        print(json.dumps({name: pretrained.load_meta(name) for name in pretrained.available()},
+                         indent=2))
         return
-    for name, meta in metas.items():
-        m = meta.get("test_metrics") or {}
-        print(f"{name}: epoch {meta['epoch']}, AOE {m.get('aoe', float('nan')):.3f} "
-              f"FOE {m.get('foe', float('nan')):.3f} ({m.get('protocol', 'not evaluated')})")
-        if per_scene := meta.get("test_metrics_per_scene"):      # the general model
-            print("  per scene AOE / FOE: " + ", ".join(
-                f"{scene} {m['aoe']:.3f} / {m['foe']:.3f}" for scene, m in per_scene.items()))
-        if meta.get("licence"):
-            print(f"  licence: {meta['licence']}")
-
+    for name in pretrained.available():
+        print("\n".join(pretrained.describe(name)))
 
 if __name__ == "__main__":
     main()

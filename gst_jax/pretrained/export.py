@@ -26,7 +26,6 @@ from gst_jax.io.workdir import run_config
 from gst_jax.model import weights
 from gst_jax.pretrained import ROOT
 from gst_jax.runs import Run, load_model
-from gst_jax.safe_pickle import read_args
 
 # The fixed-key check stored with every model: AOE on the first windows of its test split.
 CHECK = {"windows": 4, "samples": 2, "seed": 0}
@@ -62,7 +61,7 @@ def crowdnav_run(path: str | Path) -> Run:
     args.pickle (`crowdnav.model_config`), its parameters (`params_from_torch`), its training
     as args.pickle records it. Its data, CrowdNav++'s simulated crowds, are not bundled: the
     scene says so, and a command that needs it asks for --data or --scene."""
-    args = read_args(Path(path) / "checkpoint" / "args.pickle")
+    args = crowdnav.checkpoint_args(path)
     predictor = crowdnav.load(path)
     dataset = args.get("dataset", "?")
     data_config = DataConfig(scene=f"crowdnav-{dataset} (CrowdNav++'s simulated crowds, not "
@@ -88,7 +87,7 @@ def _provenance(run: Run, spec: str | Path, source: str | None, licence: str | N
     if weights.is_weights(spec):
         carried = {k: v for k, v in weights.read_config(spec).items() if k in PROVENANCE}
     elif is_crowdnav_checkpoint(spec):
-        carried["crowdnav_args"] = read_args(Path(spec) / "checkpoint" / "args.pickle")
+        carried["crowdnav_args"] = crowdnav.checkpoint_args(spec)
     own_source = run.name           # a work directory's absolute, with a sweep member's name
     if run.workdir is not None and run.name.startswith(str(run.workdir.path)):
         own_source = str(run.workdir.path.absolute()) + run.name[len(str(run.workdir.path)):]
