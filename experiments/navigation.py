@@ -23,7 +23,7 @@ from _common import add_results_flags, results_folder
 
 from gst_jax.runs import load_model
 from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav
-from gst_jax.simulate.navigation import evaluate, record_name
+from gst_jax.simulate.navigation import evaluate, format_table, record_name, row_label
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
 
@@ -31,8 +31,6 @@ CONFIGURATIONS = [("mpc", "dtaci", "orca"), ("mpc", "none", "orca"), ("cv-mpc", 
                   ("cv-mpc", "none", "orca"), ("mpc", "dtaci", "social-force"),
                   ("cv-mpc", "dtaci", "social-force")]
 MODEL = "pretrained:crowdnav_sj_rand"
-COLUMNS = ["success", "collision", "timeout", "navigation_time_s", "path_length_m",
-           "intrusion_ratio", "mean_radius_m"]
 # CrowdNav++'s released test logs (commit 3907731, trained_models/*/test/*.log, line 9; 500
 # episodes each; path length over all episodes, navigation time over the successes).
 CROWDNAV = [
@@ -45,7 +43,7 @@ CROWDNAV = [
 
 
 def run(planner: str, regions: str, humans: str, episodes: int, seed: int, out) -> dict:
-    found = out / f"{record_name(planner, regions, humans, seed)}.json"
+    found = out / f"{record_name(planner, regions, humans, episodes, seed)}.json"
     if found.exists():
         return json.loads(found.read_text())
     discs = None if regions == "none" else Regions(regions, 0.1)
@@ -56,15 +54,6 @@ def run(planner: str, regions: str, humans: str, episodes: int, seed: int, out) 
     return evaluate(env, params, mpc, episodes, seed, out, {
         "planner": planner, "regions": regions, "alpha": 0.1, "humans": humans,
         "model": MODEL if planner == "mpc" else None})
-
-
-def table(rows: list[dict]) -> str:
-    lines = ["| planner | predictions | discs | humans | " + " | ".join(COLUMNS) + " |",
-             "|---" * (4 + len(COLUMNS)) + "|"]
-    for row in rows:
-        cells = [f"{row[c]:.3f}" if isinstance(row.get(c), float) else "" for c in COLUMNS]
-        lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
 
 
 def success_half_width(success: list[float], episodes: int) -> tuple[float, float]:
@@ -114,12 +103,8 @@ def main() -> None:
     runs.mkdir(parents=True, exist_ok=True)
     rows = []
     for planner, regions, humans in CONFIGURATIONS:
-        row = run(planner, regions, humans, args.episodes, args.seed, runs)
-        predictions = "GST (crowdnav_sj_rand)" if planner == "mpc" else "constant velocity"
-        rows.append({**row, "humans": humans,
-                     "label": f"sampling MPC | {predictions} | "
-                              f"{'DtACI 0.1' if regions != 'none' else 'none'} | "
-                              f"{'ORCA' if humans == 'orca' else 'social force'}"})
+        row = {**run(planner, regions, humans, args.episodes, args.seed, runs), "humans": humans}
+        rows.append({**row, "label": row_label(row)})
     published = rows + [{"label": f"{name} | | | ORCA", **figures}
                         for name, figures in CROWDNAV]
     text = "\n".join([
@@ -131,7 +116,7 @@ def main() -> None:
         "docs/navigation.md. Navigation time over the successful episodes, path "
         "length over all, intrusion ratio: the share of an episode's steps in which a human's "
         "next 5 positions come within 0.6 m of the robot; mean radius: of the discs the "
-        "planner was given.", "", table(published), "",
+        "planner was given.", "", format_table(published), "",
         reading([row for row in rows if row["humans"] == "orca"], args.episodes) + " "
         + among_social_force([row for row in rows if row["humans"] != "orca"], args.episodes),
         "",

@@ -61,6 +61,24 @@ def positive_float(text: str) -> float:
     return value
 
 
+def at_least(minimum: int, why: str) -> Callable[[str], int]:
+    """An argparse type: an integer of at least `minimum` (`why` says what needs it)."""
+    def checked(text: str) -> int:
+        if (value := int(text)) < minimum:
+            raise argparse.ArgumentTypeError(f"at least {minimum} ({why}), got {value}")
+        return value
+    return checked
+
+
+def open_fraction(text: str) -> float:
+    """An argparse type: a number strictly between 0 and 1 (a miscoverage alpha: at 0 every
+    disc is unbounded, at 1 empty; a fraction of the frames)."""
+    value = float(text)
+    if not 0 < value < 1:
+        raise argparse.ArgumentTypeError(f"must lie strictly between 0 and 1, got {text}")
+    return value
+
+
 def parser(prog: str, doc: str) -> argparse.ArgumentParser:
     """A command's parser, described by the first paragraph of its module docstring."""
     return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.split("\n\n")[0],

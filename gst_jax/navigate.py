@@ -3,7 +3,7 @@
     python -m gst_jax.navigate evaluate --planner mpc --episodes 500 --gif 3
 
 A planner in `gst_jax.simulate.environment.CrowdNav` (CrowdNav++'s default task) over many
-episodes in one jitted program; CrowdNav++'s and ICP's measures (`simulate/navigation.py`).
+episodes, --chunk at a time in one jitted program; CrowdNav++'s and ICP's measures as a table.
 mpc plans against GST's predictions (--model) inflated by conformal radii (--regions),
 cv-mpc against constant-velocity ones; --humans: CrowdNav++'s ORCA or social force. Episodes
 are seeded from 1000 (CrowdNav++'s test offset); the planner's settings were chosen on seed 1.
@@ -11,23 +11,16 @@ are seeded from 1000 (CrowdNav++'s test offset); the planner's settings were cho
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
 from gst_jax import cli
+from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav
-from gst_jax.simulate.navigation import evaluate
+from gst_jax.simulate.navigation import CHUNK, evaluate, summary
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
-
-
-def plan_count(text: str) -> int:
-    if (count := cli.positive_int(text)) < SamplingMPC.fixed_plans:
-        raise argparse.ArgumentTypeError(f"at least {SamplingMPC.fixed_plans} (the planner's "
-                                         f"fixed plans), got {count}")
-    return count
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -41,13 +34,17 @@ def main(argv: list[str] | None = None) -> None:
         "predictor: a work directory or pretrained:NAME (default: %(default)s)")
     add("--regions", choices=("dtaci", "aci", "none"), default="dtaci", help="conformal "
         "regions around the predictions (default: dtaci)")
-    add("--alpha", type=cli.positive_float, default=0.1, help="their miscoverage (default 0.1)")
+    add("--alpha", type=cli.open_fraction, default=0.1, help="their miscoverage (default 0.1)")
     add("--humans", choices=("orca", "social-force"), default="orca", help="how the humans "
         "walk: CrowdNav++'s ORCA (default) or its social force")
     add("--episodes", type=cli.positive_int, default=500, help="episodes (default: 500)")
-    add("--plans", type=plan_count, default=256, help="plans scored per step (default: 256)")
+    add("--plans", type=cli.at_least(SamplingMPC.fixed_plans, "the planner's fixed plans"),
+        default=256, help="plans scored per step (default: 256)")
     add("--seed", type=int, default=1000, help="seed of the episodes (default: 1000)")
     add("--gif", type=cli.count, default=0, metavar="COUNT", help="GIFs of the first episodes")
+    add("--chunk", type=cli.positive_int, default=CHUNK, help="episodes per compiled program, "
+        "about 0.27 MB of memory each with GST (default: %(default)s)")
+    add("--overwrite", action="store_true", help="replace a record of the same run")
     cli.add_output_flags(evaluate_parser, workdir_help="output directory (default: "
                          "runs/navigate)", workdir_default="runs/navigate")
     cli.run(navigate, parser, argv)
@@ -61,9 +58,9 @@ def navigate(args) -> None:
     planner = SamplingMPC(num_plans=args.plans, horizon=env.pred_len, step_s=params.step_s)
     result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir), {
         "planner": args.planner, "regions": args.regions, "alpha": args.alpha, "humans":
-        args.humans, "model": args.model if args.planner == "mpc" else None}, args.gif)
-    print(json.dumps(result, indent=2) if args.json else "\n".join(
-        f"{key:18s} {value}" for key, value in result.items()))
+        args.humans, "model": args.model if args.planner == "mpc" else None}, args.gif,
+        overwrite=args.overwrite, chunk=args.chunk, progress=Progress())
+    print(json.dumps(result, indent=2) if args.json else summary(result))
 
 
 if __name__ == "__main__":

@@ -317,3 +317,40 @@ def test_jit_compiles_once_per_shape():
         state, radius = update(state, scores, scores > 0.2, uniforms)
         assert radius.shape == (tracks, 5) and radius.dtype == jnp.float32
     assert update._cache_size() == 2
+
+
+# (f) what a caller can get wrong --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("alpha", [0.0, 1.0, -1.0, float("nan")])
+def test_an_alpha_outside_0_1_is_refused_by_every_method(alpha):
+    """alpha 1 gave zero-size discs, NaN NaN radii: refused where the method is made."""
+    for make in (conformal.aci, conformal.dtaci,
+                 lambda a: conformal.split_radius(np.ones(3), None, a)):
+        with pytest.raises(ValueError, match=f"alpha must lie strictly between 0 and 1, "
+                                             f"got {alpha}"):
+            make(alpha)
+
+
+def test_split_conformal_without_calibration_scores_is_unbounded():
+    """No calibration frame at all (a fraction that rounds to none) gave an IndexError."""
+    assert conformal.split_radius(np.zeros(0), None, ALPHA) == np.inf
+    radii = jax.vmap(conformal.split_radius, (0, 0, None))(np.zeros((5, 0)),
+                                                           np.zeros((5, 0), bool), ALPHA)
+    assert np.all(np.isinf(radii)) and radii.shape == (5,)
+
+
+@pytest.mark.parametrize("flag", ["--alpha", "--calibration"])
+@pytest.mark.parametrize("value", ["0", "1", "-1", "nan"])
+def test_the_command_refuses_alpha_and_calibration_outside_0_1_when_parsed(
+        flag, value, monkeypatch, capsys):
+    """`python -m gst_jax.conformal` played the whole stream before a 29-line traceback:
+    refused by the parser (status 2, one line), before a model is loaded."""
+    import gst_jax.conformal.__main__ as command
+
+    monkeypatch.setattr(command, "measure", lambda args: pytest.fail(f"ran with {args}"))
+    with pytest.raises(SystemExit) as refused:
+        command.main(["pretrained:crowdnav_sim", flag, value])
+    assert refused.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(
+        f"argument {flag}: must lie strictly between 0 and 1, got {value}")

@@ -2,7 +2,9 @@
 gst_jax.navigate): the MPC's choice on a crafted observation, the measures on crafted
 episodes, and the command end to end on a few episodes."""
 
+import io
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -10,9 +12,15 @@ import numpy as np
 import pytest
 
 from gst_jax import navigate
-from gst_jax.simulate.environment import REACH_GOAL, COLLISION, EnvParams, Observation
-from gst_jax.simulate.navigation import max_steps, navigation_measures
+from gst_jax.errors import RunError
+from gst_jax.progress import Progress
+from gst_jax.runs import load_model
+from gst_jax.simulate.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL, CrowdNav,
+                                          EnvParams, Observation)
+from gst_jax.simulate.navigation import (episode_measures, max_steps, navigation_measures,
+                                         run_episodes, summary)
 from gst_jax.simulate.planner import SamplingMPC
+from gst_jax.stream import Regions
 
 
 def _observation(humans, radii=0.0):
@@ -48,7 +56,7 @@ def test_measures_of_crafted_episodes():
     humans[1, 3, 0] = [0.1, 0.0]                                      # near episode 1's robot
     episodes = {"robot": robot, "humans": humans, "outcome": np.array([REACH_GOAL, COLLISION]),
                 "steps": np.array([4, 3]), "radii_mean": np.array([0.1, 0.3])}
-    measures = navigation_measures(episodes, EnvParams())
+    measures = navigation_measures(episode_measures(episodes, EnvParams()), EnvParams())
     assert measures["success"] == 0.5 and measures["collision"] == 0.5
     assert measures["navigation_time_s"] == 1.0                      # over the successes
     assert measures["path_length_m"] == 0.5                          # over all episodes
@@ -58,13 +66,83 @@ def test_measures_of_crafted_episodes():
 
 
 def test_the_command_reports_crowdnavs_measures(tmp_path, capsys):
-    navigate.main(["evaluate", "--planner", "cv-mpc", "--episodes", "2", "--plans", "66",
-                   "--gif", "1", "--workdir", str(tmp_path), "--json"])
+    """JSON, then the table of results/navigation.md; a record per episode count, none
+    replaced without --overwrite (refused in one line, before compiling). One program of 2
+    episodes (about 30 s to compile here), which the chunk test below takes up again."""
+    argv = ["evaluate", "--planner", "cv-mpc", "--plans", "66", "--workdir", str(tmp_path)]
+    navigate.main([*argv, "--episodes", "2", "--gif", "1", "--json"])
     result = json.loads(capsys.readouterr().out)
     assert result["episodes"] == 2
     assert result["success"] + result["collision"] + result["timeout"] == 1.0
-    assert result == json.loads((tmp_path / "cv-mpc-dtaci-seed1000.json").read_text())
-    assert (tmp_path / "cv-mpc-dtaci-seed1000-episode0.gif").stat().st_size > 1000
+    record = tmp_path / "cv-mpc-dtaci-episodes2-seed1000.json"
+    assert result == json.loads(record.read_text())
+    assert (tmp_path / "cv-mpc-dtaci-episodes2-seed1000-episode0.gif").stat().st_size > 1000
+    with pytest.raises(SystemExit) as refused:
+        navigate.main([*argv, "--episodes", "2", "--alpha", "0.2"])
+    assert str(refused.value) == (f"error: {record} exists: a run of the same 2 episodes; "
+                                  "--overwrite replaces it, another --workdir keeps it")
+    assert json.loads(record.read_text()) == result
+    navigate.main([*argv, "--episodes", "3", "--chunk", "2"])
+    header, rule, row, footer = capsys.readouterr().out.splitlines()
+    assert header == ("| planner | predictions | discs | humans | success | collision | "
+                      "timeout | navigation_time_s | path_length_m | intrusion_ratio | "
+                      "mean_radius_m |")
+    assert rule == "|---" * 11 + "|"
+    three = json.loads((tmp_path / "cv-mpc-dtaci-episodes3-seed1000.json").read_text())
+    assert row == ("| sampling MPC | constant velocity | DtACI 0.1 | ORCA | " + " | ".join(
+        f"{three[c]:.3f}" for c in ("success", "collision", "timeout", "navigation_time_s",
+                                    "path_length_m", "intrusion_ratio", "mean_radius_m")) + " |")
+    assert footer.startswith("3 episodes of seed 1000; compiling ")
+    assert json.loads(record.read_text()) == result
+
+
+def test_episodes_in_chunks_are_those_of_one_program():
+    """--episodes 1000000 ran out of memory: episodes run `chunk` at a time through one
+    program (the last chunk padded), each from its own key, so that a chunked run gives
+    every array of an unchunked one, bit for bit; progress counts the chunks. The chunks
+    are the command's program above (from the persistent cache); one program of 3."""
+    env, params = CrowdNav.with_predictor(CONSTANT_VELOCITY, regions=Regions("dtaci", 0.1))
+    planner = SamplingMPC(num_plans=66, horizon=env.pred_len, step_s=params.step_s)
+    log = io.StringIO()
+    chunked, _, _ = run_episodes(env, params, planner, planner.init(), 3, seed=1000, chunk=2,
+                                 keep=3, progress=Progress(log))
+    whole, _, _ = run_episodes(env, params, planner, planner.init(), 3, seed=1000, keep=3)
+    assert chunked.keys() == whole.keys() and whole["humans"].shape == (3, 198, 20, 2)
+    for name, array in whole.items():
+        np.testing.assert_array_equal(chunked[name], array, err_msg=name)
+    assert [line.split(",")[0] for line in log.getvalue().splitlines()] == [
+        "episodes 2/3", "episodes 3/3"]
+
+
+def test_a_model_of_another_time_step_is_refused(tmp_path):
+    """pretrained:zara1_d predicts 0.4 s steps; the task moves in 0.25 s ones."""
+    zara = load_model("pretrained:zara1_d")
+    with pytest.raises(RunError, match="pretrained:zara1_d predicts steps of 0.4 s, the "
+                                       "environment moves in steps of 0.25 s"):
+        CrowdNav.with_predictor(zara)
+    with pytest.raises(SystemExit, match="^error: pretrained:zara1_d predicts steps of 0.4 s"):
+        navigate.main(["evaluate", "--model", "pretrained:zara1_d", "--episodes", "1",
+                       "--workdir", str(tmp_path)])
+
+
+@pytest.mark.parametrize("value", ["0", "1", "-1", "nan", "1.5"])
+def test_alpha_outside_0_1_is_refused_when_parsed(value, monkeypatch, capsys):
+    """--alpha 1 gave zero-size discs: refused by the parser (status 2, one line)."""
+    monkeypatch.setattr(navigate, "navigate", lambda args: pytest.fail(f"ran with {args}"))
+    with pytest.raises(SystemExit) as refused:
+        navigate.main(["evaluate", "--alpha", value])
+    assert refused.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].endswith(
+        f"argument --alpha: must lie strictly between 0 and 1, got {value}")
+
+
+def test_the_docs_show_the_table_the_command_prints():
+    """docs/navigation.md's output block is `summary` of the published record it names."""
+    root = Path(__file__).parents[1]
+    docs = (root / "docs" / "navigation.md").read_text()
+    shown = docs.split("as its published record (results/runs/navigation/) reads:\n\n```\n")[1]
+    record = root / "results" / "runs" / "navigation" / "mpc-dtaci-episodes500-seed1000.json"
+    assert shown.split("\n```")[0] == summary(json.loads(record.read_text()))
 
 
 def test_a_ppo_from_rejax_trains_in_the_environment():
@@ -86,12 +164,14 @@ def test_the_experiment_tabulates_its_records_without_running_them_again(tmp_pat
     for planner, regions, humans in experiment.CONFIGURATIONS:
         # Social-force rows with other figures: the reading must leave them out.
         orca = humans == "orca"
-        record = {"planner": planner, "regions": regions, "success": 0.9 if orca else 0.5,
+        record = {"planner": planner, "regions": regions, "alpha": 0.1,
+                  "model": "pretrained:crowdnav_sj_rand" if planner == "mpc" else None,
+                  "success": 0.9 if orca else 0.5,
                   "collision": 0.1, "timeout": 0.0,
                   "navigation_time_s": 14.0 if regions == "none" else 15.0 if orca else 30.0,
                   "path_length_m": 12.0, "intrusion_ratio": 0.2 if regions == "none" else 0.1,
                   "mean_radius_m": 0.2}
-        name = f"{planner}-{regions}{'' if orca else '-' + humans}-seed1000.json"
+        name = f"{planner}-{regions}{'' if orca else '-' + humans}-episodes500-seed1000.json"
         (tmp_path / name).write_text(json.dumps(record))
     monkeypatch.setattr("sys.argv", ["navigation.py", "--workdir", str(tmp_path)])
     experiment.main()

@@ -157,6 +157,17 @@ def _scores_and_mask(scores, mask, dtype) -> tuple[jax.Array, jax.Array]:
     return scores, mask
 
 
+def _check_alpha(alpha) -> None:
+    """Refuse a target miscoverage outside (0, 1) (NaN included); a traced one is the
+    caller's to check."""
+    try:
+        value = float(alpha)
+    except TypeError:                     # a tracer or an array of several
+        return
+    if not 0 < value < 1:
+        raise ValueError(f"alpha must lie strictly between 0 and 1, got {alpha}")
+
+
 # Split conformal -----------------------------------------------------------------------------
 
 
@@ -165,8 +176,11 @@ def split_radius(scores: jax.Array, mask: jax.Array | None, alpha: float) -> jax
     the ceil((n+1)(1-alpha))-th smallest valid score, i.e. the ceil((n+1)(1-alpha))/n
     empirical quantile; +inf when that rank exceeds n (too few scores for the level) or
     n = 0. alpha in (0, 1). For one horizon step; vmap over horizon steps (scores (P, n))."""
+    _check_alpha(alpha)
     scores = jnp.asarray(scores)
     scores, mask = _scores_and_mask(scores, mask, jnp.result_type(scores.dtype, float))
+    if scores.shape[0] == 0:
+        return jnp.asarray(jnp.inf, scores.dtype)
     n = jnp.sum(mask)
     rank = jnp.ceil((n + 1) * (1 - alpha))
     ordered = jnp.sort(jnp.where(mask, scores, jnp.inf))
@@ -237,6 +251,7 @@ def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000,
     The window is kept sorted as well, one score in and one out in O(W) each, so that an
     update costs O(B W), not a sort of W (measured: benchmarks/bench_conformal.py).
     """
+    _check_alpha(alpha)
     if window < 1 or batch not in BATCH_MODES:
         raise ValueError(f"window must be >= 1 (got {window}) and batch one of {BATCH_MODES} "
                          f"(got {batch!r})")
@@ -317,6 +332,7 @@ def dtaci(alpha: float = 0.1, gammas=(0.05, 0.1, 0.2), eta: float = 2.72,
       p = w / sum(w); then the expert is drawn from p with `uniform` (in [0, 1), one per
       update; unused for output="mean"). No valid score: nothing changes.
     """
+    _check_alpha(alpha)
     if loss not in LOSSES or output not in OUTPUTS or batch not in BATCH_MODES:
         raise ValueError(f"loss must be one of {LOSSES} (got {loss!r}), output one of "
                          f"{OUTPUTS} (got {output!r}), batch one of {BATCH_MODES} "

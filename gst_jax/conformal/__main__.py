@@ -32,9 +32,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--method", default="dtaci", choices=METHODS,
                         help="split conformal, ACI (Gibbs & Candes 2021) or DtACI (2022, "
                              "GenSafeNav's variant) (default: dtaci)")
-    parser.add_argument("--alpha", type=cli.positive_float, default=0.1,
+    parser.add_argument("--alpha", type=cli.open_fraction, default=0.1,
                         help="target miscoverage: discs should hold 1 - alpha (default: 0.1)")
-    parser.add_argument("--calibration", type=float, default=0.3, metavar="FRACTION",
+    parser.add_argument("--calibration", type=cli.open_fraction, default=0.3, metavar="FRACTION",
                         help="the first fraction of the frames: split's calibration, and left "
                              "out of every method's figures (default: 0.3)")
     parser.add_argument("--per-track", action="store_true", help="aci/dtaci per track and "

@@ -56,6 +56,7 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax import conformal
+from gst_jax.errors import RunError
 from gst_jax.simulate.orca import OrcaParams, orca_velocities
 from gst_jax.stream import Regions, StreamModel, StreamState, init_state, predict_slots
 
@@ -176,14 +177,19 @@ class CrowdNav:
     def with_predictor(cls, predictor, num_humans: int = 20, regions: Regions | None = None,
                        human_policy: str = ORCA) -> tuple["CrowdNav", EnvParams]:
         """The environment and its params, predictions by `predictor`: a loaded model
-        (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor), CONSTANT_VELOCITY
-        or None."""
+        (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor) whose time step is
+        the environment's (RunError otherwise), CONSTANT_VELOCITY or None."""
         if predictor is None or isinstance(predictor, str):
             return cls(num_humans, predictor, regions=regions,
                        human_policy=human_policy), EnvParams()
-        run, config = predictor, predictor.model_config
+        run, config, params = predictor, predictor.model_config, EnvParams()
+        if not math.isclose(config.step_s, params.step_s):
+            raise RunError(f"{run.name} predicts steps of {config.step_s:g} s, the environment "
+                           f"moves in steps of {params.step_s:g} s (CrowdNav++'s task): its "
+                           f"predictions would be read at the wrong times; use a model of "
+                           f"{params.step_s:g} s steps, e.g. pretrained:crowdnav_sj_rand")
         return (cls(num_humans, StreamModel(config), config.obs_len, config.pred_len, regions,
-                    human_policy), EnvParams(predictor=run.params))
+                    human_policy), params.replace(predictor=run.params))
 
     @property
     def default_params(self) -> EnvParams:

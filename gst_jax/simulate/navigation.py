@@ -1,5 +1,5 @@
-"""Planners evaluated in CrowdNav++'s task: many episodes as one jitted, vmapped program, and
-what CrowdNav++ and ICP report of them.
+"""Planners evaluated in CrowdNav++'s task: many episodes through one jitted, vmapped program,
+a chunk of them at a time, and what CrowdNav++ and ICP report of them.
 
 Each episode runs `environment.CrowdNav.step_env` under a planner until it ends (arrival,
 collision, or the timeout after 49 s: at most 197 steps) and then stands still. Measures,
@@ -23,6 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gst_jax.errors import RunError
+from gst_jax.progress import Progress
 from gst_jax.simulate.environment import (COLLISION, REACH_GOAL, TIMEOUT, CrowdNav, EnvParams,
                                           Observation)
 from gst_jax.simulate.figures import animate_navigation
@@ -37,12 +39,16 @@ def max_steps(params: EnvParams) -> int:
     return round((params.time_limit_s - 1) / params.step_s) + 1
 
 
-def run_episodes(env: CrowdNav, params: EnvParams, planner: Planner, init: PlannerState,
-                 count: int, seed: int = 0) -> tuple[dict, float, float]:
-    """`count` episodes of `planner`: (arrays per episode, compile seconds, run seconds).
-    Arrays: robot (E, S+1, 2) and humans (E, S+1, H, 2) positions (still after the end),
-    goal (E, 2), outcome (E,), steps (E,) the step it ended at, radii_mean (E,) the mean
-    conformal radius the robot was given."""
+# Episodes per compiled program: memory is bounded by one chunk's, whatever the count. XLA's
+# memory analysis (CPU) of crowdnav_sj_rand's program with 256 plans: 0.235 MB of temporaries
+# and 0.033 MB of outputs per episode, linear from 10 to 1000 (268 MB): a million episodes
+# in one program would ask for 268 GB.
+CHUNK = 1000
+
+
+def _episode(env: CrowdNav, params: EnvParams, planner: Planner, init: PlannerState
+             ) -> Callable[[jax.Array], dict]:
+    """One episode of `planner` from its key: its arrays (`run_episodes`)."""
     steps = max_steps(params)
 
     def episode(key):
@@ -72,25 +78,52 @@ def run_episodes(env: CrowdNav, params: EnvParams, planner: Planner, init: Plann
         return {"robot": robot, "humans": humans, "goal": state.robot_goal,
                 "outcome": carry[4], "steps": carry[5], "radii_mean": radii.mean()}
 
-    run = jax.jit(jax.vmap(episode))
+    return episode
+
+
+def run_episodes(env: CrowdNav, params: EnvParams, planner: Planner, init: PlannerState,
+                 count: int, seed: int = 0, *, chunk: int = CHUNK, keep: int = 0,
+                 progress: Progress | None = None) -> tuple[dict, float, float]:
+    """`count` episodes of `planner`, `chunk` at a time through one compiled program (the
+    last chunk padded), so that memory does not grow with `count`: (arrays, compile
+    seconds, run seconds). Arrays: `episode_measures` of every episode (E,), and of the
+    first `keep` episodes the robot's (K, S+1, 2) and humans' (K, S+1, H, 2) positions
+    (still after the end) and the goal (K, 2). Episode i plays from the i-th key of
+    split(key(seed), count) in a lane of its own, whatever `chunk`: at XLA's lowest
+    optimisation level the arrays do not depend on it (tests/test_navigation.py); at its
+    default level on a CPU the number of lanes can change the rounding (docs/navigation.md).
+    `progress` counts the episodes done, with an ETA."""
     keys = jax.random.split(jax.random.key(seed), count)
+    size = min(count, chunk)
     started = time.perf_counter()
-    compiled = run.lower(keys).compile()
+    compiled = jax.jit(jax.vmap(_episode(env, params, planner, init))).lower(
+        keys[:size]).compile()
     compile_s = time.perf_counter() - started
     started = time.perf_counter()
-    out = jax.block_until_ready(compiled(keys))
-    return jax.tree.map(np.asarray, out), compile_s, time.perf_counter() - started
+    parts = []
+    for first in range(0, count, size):
+        taken = min(size, count - first)
+        lanes = np.minimum(np.arange(first, first + size), count - 1)    # the last padded
+        out = jax.tree.map(lambda a: np.asarray(a)[:taken], compiled(keys[lanes]))
+        part = episode_measures(out, params)
+        kept = min(max(keep - first, 0), taken)
+        parts.append({**part, **{k: out[k][:kept] for k in ("robot", "humans", "goal")}})
+        if progress:
+            progress.count("episodes", first + taken, count, started)
+    arrays = {k: np.concatenate([part[k] for part in parts]) for k in parts[0]}
+    return arrays, compile_s, time.perf_counter() - started
 
 
-def navigation_measures(episodes: dict, params: EnvParams, intrusion_steps: int = 5,
-                        intrusion_distance: float = 0.6) -> dict:
-    """CrowdNav++'s test measures of `run_episodes`' arrays (module docstring)."""
-    outcome, steps = episodes["outcome"], episodes["steps"]
-    success = outcome == REACH_GOAL
+def episode_measures(episodes: dict, params: EnvParams, intrusion_steps: int = 5,
+                     intrusion_distance: float = 0.6) -> dict:
+    """Per episode (E,), from its positions (robot (E, S+1, 2), humans (E, S+1, H, 2)),
+    outcome, steps (the step it ended at) and radii_mean (the mean conformal radius the robot
+    was given): outcome, steps, radii_mean, path_length_m and intrusion_ratio (module
+    docstring)."""
+    steps = episodes["steps"]
     robot, humans = episodes["robot"], episodes["humans"]
     moved = np.linalg.norm(np.diff(robot, axis=1), axis=-1)                  # (E, S)
     live = np.arange(moved.shape[1])[None] < steps[:, None]
-    path = (moved * live).sum(axis=1)
     # Step t intrudes when a human's position at t+1..t+5 comes near the robot's at t.
     total = robot.shape[1]
     near = np.zeros(robot.shape[:2], bool)
@@ -98,34 +131,83 @@ def navigation_measures(episodes: dict, params: EnvParams, intrusion_steps: int 
         ahead = np.linalg.norm(humans[:, k:] - robot[:, :total - k, None], axis=-1)
         near[:, :total - k] |= (ahead < intrusion_distance).any(axis=-1)
     counted = np.arange(total)[None] < steps[:, None]
-    intrusion = (near & counted).sum(axis=1) / np.maximum(steps, 1)
+    return {"outcome": episodes["outcome"], "steps": steps,
+            "radii_mean": episodes["radii_mean"], "path_length_m": (moved * live).sum(axis=1),
+            "intrusion_ratio": (near & counted).sum(axis=1) / np.maximum(steps, 1)}
+
+
+def navigation_measures(measures: dict, params: EnvParams) -> dict:
+    """CrowdNav++'s test measures (module docstring) of `episode_measures`' arrays."""
+    outcome, steps = measures["outcome"], measures["steps"]
+    success = outcome == REACH_GOAL
     rate = lambda mask: float(mask.mean())
     over_success = lambda values: float(values[success].mean()) if success.any() else math.nan
     return {"episodes": int(len(outcome)), "success": rate(success),
             "collision": rate(outcome == COLLISION), "timeout": rate(outcome == TIMEOUT),
             "navigation_time_s": over_success(steps * params.step_s),
-            "path_length_m": float(path.mean()),
-            "intrusion_ratio": float(intrusion.mean()),
-            "mean_radius_m": float(np.nanmean(episodes["radii_mean"]))}
+            "path_length_m": float(measures["path_length_m"].mean()),
+            "intrusion_ratio": float(measures["intrusion_ratio"].mean()),
+            "mean_radius_m": float(np.nanmean(measures["radii_mean"]))}
 
 
+# The measures of a table's columns, as results/navigation.md shows them.
+COLUMNS = ("success", "collision", "timeout", "navigation_time_s", "path_length_m",
+           "intrusion_ratio", "mean_radius_m")
 
-def record_name(planner: str, regions: str, humans: str, seed: int) -> str:
-    """The stem of an evaluation's files: PLANNER-REGIONS[-HUMANS]-seedSEED (ORCA's
-    humans, the default, unnamed)."""
-    return "-".join([planner, regions, *([humans] if humans != "orca" else []), f"seed{seed}"])
+
+def row_label(record: dict) -> str:
+    """A record's first four cells: planner, predictions, discs, humans (ORCA's where it
+    names none, as records before the social-force option)."""
+    model = record.get("model") or ""
+    predictions = ("constant velocity" if record["planner"] == "cv-mpc" else
+                   f"GST ({model.removeprefix('pretrained:').rstrip('/').split('/')[-1]})")
+    discs = ("none" if record["regions"] == "none" else
+             f"{'DtACI' if record['regions'] == 'dtaci' else 'ACI'} {record['alpha']:g}")
+    humans = "social force" if record.get("humans") == "social-force" else "ORCA"
+    return f"sampling MPC | {predictions} | {discs} | {humans}"
+
+
+def format_table(rows: list[dict]) -> str:
+    """Records as results/navigation.md's table: a row per record, labelled by its "label"
+    (`row_label`'s cells), the measures to three decimals (blank where missing)."""
+    lines = ["| planner | predictions | discs | humans | " + " | ".join(COLUMNS) + " |",
+             "|---" * (4 + len(COLUMNS)) + "|"]
+    for row in rows:
+        cells = [f"{row[c]:.3f}" if isinstance(row.get(c), float) else "" for c in COLUMNS]
+        lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def summary(result: dict) -> str:
+    """An evaluation's record as `python -m gst_jax.navigate evaluate` prints it: its row of
+    results/navigation.md's table, then its episodes, seed and seconds."""
+    return "\n".join([format_table([{**result, "label": row_label(result)}]),
+                      f"{result['episodes']} episodes of seed {result['seed']}; compiling "
+                      f"{result['compile_s']} s, running {result['run_s']} s"])
+
+
+def record_name(planner: str, regions: str, humans: str, episodes: int, seed: int) -> str:
+    """The stem of an evaluation's files: PLANNER-REGIONS[-HUMANS]-episodesCOUNT-seedSEED
+    (ORCA's humans, the default, unnamed), so that runs of other lengths sit beside it."""
+    return "-".join([planner, regions, *([humans] if humans != "orca" else []),
+                     f"episodes{episodes}", f"seed{seed}"])
 
 
 def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int, seed: int,
-             out: Path, described: dict, gifs: int = 0) -> dict:
+             out: Path, described: dict, gifs: int = 0, *, overwrite: bool = False,
+             chunk: int = CHUNK, progress: Progress | None = None) -> dict:
     """`count` episodes of `planner` measured: `described` (its "planner" and "regions",
     and "humans" where they are not ORCA's, name the files), the measures and the timings,
-    written to out/PLANNER-REGIONS[-HUMANS]-seedSEED.json, and a GIF of each of the first
-    `gifs` episodes beside it."""
+    written to out/`record_name`.json, and a GIF of each of the first `gifs` episodes beside
+    it. An existing record is replaced only with `overwrite` (refused before compiling)."""
     name = record_name(described["planner"], described["regions"],
-                       described.get("humans", "orca"), seed)
+                       described.get("humans", "orca"), count, seed)
+    if (out / f"{name}.json").exists() and not overwrite:
+        raise RunError(f"{out / name}.json exists: a run of the same {count} episodes; "
+                       f"--overwrite replaces it, another --workdir keeps it")
     episodes, compile_s, run_s = run_episodes(env, params, planner, planner.init(), count,
-                                              seed=seed)
+                                              seed=seed, chunk=chunk, keep=gifs,
+                                              progress=progress)
     result = {**described, "seed": seed, **navigation_measures(episodes, params),
               "compile_s": round(compile_s, 1), "run_s": round(run_s, 1)}
     out.mkdir(parents=True, exist_ok=True)
@@ -134,4 +216,7 @@ def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int,
         animate_navigation(episodes["robot"][e], episodes["humans"][e], episodes["goal"][e],
                            int(episodes["steps"][e]), out / f"{name}-episode{e}.gif",
                            f"{name}, episode {e}")
+    if progress:
+        progress.line(f"written: {out / name}.json" + (f" and {min(gifs, count)} GIFs beside it"
+                                                      if gifs else ""))
     return result
