@@ -72,17 +72,39 @@ def parser(prog: str, doc: str) -> argparse.ArgumentParser:
 COMPILATION_CACHE = Path.home() / ".cache" / "gst_jax" / "xla"
 
 
-def use_compilation_cache() -> None:
-    """Keep compiled programs in COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set.
+def use_compilation_cache(directory: str | None = None) -> None:
+    """Keep compiled programs in `directory` (--compilation-cache) if given, every program
+    however quickly it compiled (`gst_jax.compiles.use_persistent_cache`); else in
+    COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set.
 
     A command that computes nothing (`data stats`) must not pay for importing jax: where it
     is not imported yet, jax reads the setting from the environment when it is."""
+    if directory is not None:
+        path = Path(directory).expanduser().absolute()
+        if "jax" in sys.modules:
+            from gst_jax.compiles import use_persistent_cache
+
+            use_persistent_cache(path)
+        else:
+            path.mkdir(parents=True, exist_ok=True)
+            os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
+            os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+        return
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return
     if "jax" in sys.modules:
         sys.modules["jax"].config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
     else:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILATION_CACHE)
+
+
+def add_compilation_cache_flag(parser: argparse.ArgumentParser) -> None:
+    """--compilation-cache DIR, for the commands that compile a model's programs."""
+    parser.add_argument("--compilation-cache", metavar="DIR", default=None,
+                        help="keep every compiled program in DIR and load it from there in "
+                             "later runs, so that a restarted process does not compile again "
+                             "(default: $JAX_COMPILATION_CACHE_DIR if set, else "
+                             "~/.cache/gst_jax/xla, programs that compiled in over 1 s)")
 
 
 # Seconds from a stop signal (Ctrl-C, SIGTERM) to the end of a command that has not stopped
@@ -95,7 +117,7 @@ def run(command: Callable[[argparse.Namespace], None], parser: argparse.Argument
     """Parse `argv` and run `command`; a user error ends the process with one line, a stop
     signal (Ctrl-C, SIGTERM) with one line and status 130."""
     args = parser.parse_args(argv)
-    use_compilation_cache()
+    use_compilation_cache(getattr(args, "compilation_cache", None))
     warnings.formatwarning = lambda message, *_, **__: f"warning: {message}\n"
     try:
         with stops_end_the_process(STOP_GRACE_S):

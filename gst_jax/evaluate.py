@@ -36,6 +36,7 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_device_flags(parser)
     cli.add_output_flags(parser, workdir_help="where eval/ is written (default: the model's "
                          "own work directory; a shipped model's result is only printed)")
+    cli.add_compilation_cache_flag(parser)
     cli.run(evaluate, parser, argv)
 
 

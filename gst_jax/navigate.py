@@ -50,6 +50,7 @@ def main(argv: list[str] | None = None) -> None:
     add("--gif", type=cli.count, default=0, metavar="COUNT", help="GIFs of the first episodes")
     cli.add_output_flags(evaluate_parser, workdir_help="output directory (default: "
                          "runs/navigate)", workdir_default="runs/navigate")
+    cli.add_compilation_cache_flag(evaluate_parser)
     cli.run(navigate, parser, argv)
 
 

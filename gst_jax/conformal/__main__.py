@@ -46,6 +46,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--figure", metavar="PNG", help="draw the regions of one frame and "
                         "the coverage per horizon step here")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
+    cli.add_compilation_cache_flag(parser)
     cli.run(measure, parser, argv)
 
 

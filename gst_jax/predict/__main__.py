@@ -31,6 +31,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--memory-budget", type=cli.positive_float, metavar="GIB",
                         default=DEFAULT_MEMORY_BUDGET / 2 ** 30, help="memory one batch's "
                         "program may use; larger crowds sample in chunks (default: %(default)s)")
+    cli.add_compilation_cache_flag(parser)
     cli.run(predict, parser, argv)
 
 
