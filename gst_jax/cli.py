@@ -61,10 +61,15 @@ def positive_float(text: str) -> float:
     return value
 
 
-def parser(prog: str, doc: str) -> argparse.ArgumentParser:
-    """A command's parser, described by the first paragraph of its module docstring."""
-    return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.split("\n\n")[0],
+def parser(prog: str, doc: str, *, compilation_cache: bool = False
+           ) -> argparse.ArgumentParser:
+    """A command's parser, described by the first paragraph of its module docstring;
+    compilation_cache: the command compiles a model's programs (--compilation-cache)."""
+    made = argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.split("\n\n")[0],
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+    if compilation_cache:
+        add_compilation_cache_flag(made)
+    return made
 
 
 # Compiled programs are kept here across runs (unless JAX_COMPILATION_CACHE_DIR says where):
@@ -354,9 +359,14 @@ def devices(args: argparse.Namespace, *, members: int | None = None) -> Devices 
 
 
 def add_output_flags(parser: argparse.ArgumentParser, *, workdir_help: str,
-                     workdir_default: str | None = None) -> None:
+                     workdir_default: str | None = None, compilation_cache: bool = False
+                     ) -> None:
+    """--workdir and --json; with compilation_cache, --compilation-cache too (for a
+    subcommand's parser, where `parser(..., compilation_cache=True)` cannot put it)."""
     parser.add_argument("--workdir", default=workdir_default, help=workdir_help)
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    if compilation_cache:
+        add_compilation_cache_flag(parser)
 
 
 def model_spec(spec: str | None) -> str | None:

@@ -49,8 +49,7 @@ def main(argv: list[str] | None = None) -> None:
     add("--seed", type=int, default=1000, help="seed of the episodes (default: 1000)")
     add("--gif", type=cli.count, default=0, metavar="COUNT", help="GIFs of the first episodes")
     cli.add_output_flags(evaluate_parser, workdir_help="output directory (default: "
-                         "runs/navigate)", workdir_default="runs/navigate")
-    cli.add_compilation_cache_flag(evaluate_parser)
+                         "runs/navigate)", workdir_default="runs/navigate", compilation_cache=True)
     cli.run(navigate, parser, argv)
 
 

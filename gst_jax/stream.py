@@ -417,8 +417,8 @@ class Stream:
         self._lost: set[int] = set()
         self._last_time: float | None = None
         config = run.model_config
-        self.state = init_state(bucket_size(capacity), config.obs_len, regions,
-                                config.pred_len)
+        self.state = _initial_state(bucket_size(capacity), config.obs_len, regions,
+                                    config.pred_len)
         # Per track, the regions of one fresh slot, to give the slots a growing stream adds.
         self._fresh_regions = None if regions is None or regions.pooled else _host_tree(
             regions.init(1, config.pred_len))
@@ -450,7 +450,8 @@ class Stream:
         self.frames += steps - 1 - min(steps - 1, config.obs_len + config.pred_len)
         state, futures, predicted, radii, delayed = self._advance(ids, positions)
         track_ids = np.asarray(state.track_ids)
-        restarted = np.sort(track_ids[np.asarray(state.restarted)])
+        restarted = np.sort(track_ids[np.asarray(state.restarted)
+                                      & (track_ids != self.ROBOT)])
         self.restarts += len(restarted)
         keep = (predicted > 0) & (track_ids != FREE) & (track_ids != self.ROBOT)
         futures = np.moveaxis(futures[:, :, keep], 2, 0)                        # (L, K, P, 2)
@@ -481,8 +482,9 @@ class Stream:
             capacities.append(bucket_size(capacities[-1] + 1))
         state = self.state
         try:
-            for capacity in capacities:
-                self.state = _empty(state, capacity)
+            for capacity in capacities:         # the step on the tracks as they are, unkept
+                self.state = state
+                self.state = self._grown(capacity)
                 self._run(np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(0, np.int32))
         finally:
             self.state = state
@@ -513,9 +515,11 @@ class Stream:
     def _advance(self, ids: np.ndarray, positions: np.ndarray) -> tuple:
         """One model step over a checked frame: the state moves on; returns it and the
         step's outputs as numpy arrays."""
-        held = set(np.asarray(self.state.track_ids).tolist())
-        lost = np.array(sorted(self._lost & held), np.int32)
-        self._lost.clear()
+        lost = np.zeros(0, np.int32)
+        if self._lost:
+            held = set(np.asarray(self.state.track_ids).tolist())
+            lost = np.array(sorted(self._lost & held), np.int32)
+            self._lost.clear()
         if len(ids) > self.state.capacity:
             self.state = self._grown(bucket_size(len(ids)))
         while True:
@@ -563,20 +567,14 @@ class Stream:
         return grown.replace(feed=feed, regions=regions)
 
 
+# `init_state` as one program (a few hundredths of a second from a warm compilation cache)
+# rather than two dozen eager operations, each traced and compiled or loaded on its own.
+_initial_state = jax.jit(init_state, static_argnums=(0, 1, 2, 3))
+
+
 def _host_tree(tree):
     """Every array of a pytree as numpy (None stays None)."""
     return jax.tree.map(np.asarray, tree)
-
-
-def _empty(state: StreamState, capacity: int) -> StreamState:
-    """A state like `state` (numpy) with `capacity` free slots and nothing pending: what
-    `Stream.warm_up` compiles the step of each capacity on."""
-    def like(leaf):
-        leaf = np.asarray(leaf)
-        shape = tuple(capacity if size == state.capacity else size for size in leaf.shape)
-        return np.zeros(shape, leaf.dtype)
-    empty = jax.tree.map(like, state)
-    return empty.replace(track_ids=np.full((capacity,), FREE, np.int32))
 
 
 def _checked_frame(ids, positions, non_finite: str = "raise") -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,7 @@ from gst_jax.runs import load_model
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = cli.parser("gst_jax.conformal", __doc__)
+    parser = cli.parser("gst_jax.conformal", __doc__, compilation_cache=True)
     parser.add_argument("model", help="a work directory of `python -m gst_jax.train`, "
                         "SWEEP_DIR:MEMBER, or pretrained:NAME")
     cli.add_data_flags(parser, of_run=True)
@@ -46,7 +46,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--figure", metavar="PNG", help="draw the regions of one frame and "
                         "the coverage per horizon step here")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
-    cli.add_compilation_cache_flag(parser)
     cli.run(measure, parser, argv)
 
 

@@ -22,7 +22,7 @@ from gst_jax.runs import load_model
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = cli.parser("gst_jax.predict", __doc__)
+    parser = cli.parser("gst_jax.predict", __doc__, compilation_cache=True)
     parser.add_argument("model", help="a work directory of `python -m gst_jax.train` (or one of "
                         "its checkpoints/<epoch>), SWEEP_DIR:MEMBER, or pretrained:NAME")
     cli.add_data_flags(parser, of_run=True)
@@ -31,7 +31,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--memory-budget", type=cli.positive_float, metavar="GIB",
                         default=DEFAULT_MEMORY_BUDGET / 2 ** 30, help="memory one batch's "
                         "program may use; larger crowds sample in chunks (default: %(default)s)")
-    cli.add_compilation_cache_flag(parser)
     cli.run(predict, parser, argv)
 
 
