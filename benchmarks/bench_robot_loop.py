@@ -29,10 +29,12 @@ frames), reporting half of its lost tracks (`Stream.forget`) and recycling the o
 (the max_speed rule must catch those); each detection is missed with probability 0.1
 (occlusions) and reported as NaN with probability 0.02 (`non_finite="undetected"`); frames
 come with timestamps and 2 % of them are dropped (`step(time=)` fills the gap). Reported:
-the step latency (p50, p99, max over the 400 calls of `Stream.step`, numpy in and out,
-after `warm_up(64)`), the compilations inside the loop, the tracks restarted, and the pooled
-coverage (the fraction of scored predictions within the radius issued with them, all horizon
-steps together, and the lowest and highest per step) with the mean radius at the last step.
+how many ids the tracker gave to someone else within obs_len steps of their last holder's
+last detection (reported lost, or silently), the step latency (p50, p99, max over the 400
+calls of `Stream.step`, numpy in and out, after `warm_up(64)`), the compilations inside the
+loop, the tracks restarted, and the pooled coverage (the fraction of scored predictions
+within the radius issued with them, all horizon steps together, and the lowest and highest
+per step) with the mean radius at the last step.
 """
 
 from __future__ import annotations
@@ -53,10 +55,11 @@ STEP_S = 0.25
 
 
 def crowd(frames: int = FRAMES, seed: int = 0) -> list[tuple]:
-    """The tracker's output, frame by frame: (time, ids (M,), positions (M, 2), lost ids):
-    positions NaN where a detection came out as NaN; frames dropped by the tracker left out."""
+    """The tracker's output, frame by frame: (time, ids (M,), positions (M, 2), lost ids,
+    and who is who (M,), which the tracker does not know): positions NaN where a detection
+    came out as NaN; frames dropped by the tracker left out."""
     rng = np.random.default_rng(seed)
-    people, free_ids, next_id, out, lost = [], [], 0, [], []
+    people, free_ids, next_id, next_person, out, lost = [], [], 0, 0, [], []
     for t in range(frames):
         target = min(50, 4 + t // 3) if t < 300 else 50 - (t - 300) // 4
         for person in [p for p in people if p["leaves"] <= t]:
@@ -74,9 +77,10 @@ def crowd(frames: int = FRAMES, seed: int = 0) -> list[tuple]:
             start[side % 2] = -8 if side < 2 else 8
             heading = np.arctan2(*-start[::-1]) + rng.normal(0, 0.5)
             speed = rng.uniform(0.5, 1.5)
-            people.append(dict(id=track, start=start, entered=t,
+            people.append(dict(id=track, person=next_person, start=start, entered=t,
                                velocity=speed * np.array([np.cos(heading), np.sin(heading)]),
                                leaves=t + int(rng.integers(40, 240))))
+            next_person += 1
         if rng.random() < 0.02:           # the tracker dropped this frame
             continue
         seen = [p for p in people if rng.random() > 0.1]
@@ -84,9 +88,28 @@ def crowd(frames: int = FRAMES, seed: int = 0) -> list[tuple]:
         xy = np.array([p["start"] + p["velocity"] * (t - p["entered"]) * STEP_S for p in seen]
                       ).reshape(-1, 2)
         xy[rng.random(len(seen)) < 0.02] = np.nan
-        out.append((t * STEP_S, ids, xy, lost))
+        out.append((t * STEP_S, ids, xy, lost, [p["person"] for p in seen]))
         lost = []
     return out
+
+
+def recycled(frames: list[tuple], obs_len: int = 5) -> dict:
+    """How often the tracker gave an id to someone else within obs_len steps of its last
+    holder's last detection (a stream still holds that track): reported lost, or silently."""
+    holder, reported, silent, forgotten = {}, 0, 0, set()
+    for stamp, ids, xy, lost, people in frames:
+        step = round(stamp / STEP_S)
+        forgotten.update(lost)
+        for track, person, seen in zip(ids.tolist(), people, np.isfinite(xy).all(axis=1)):
+            if not seen:                  # a NaN detection: not a detection to the stream
+                continue
+            last = holder.get(track)
+            if last and last[0] != person and step - last[1] < obs_len:
+                reported += track in forgotten
+                silent += track not in forgotten
+            forgotten.discard(track)
+            holder[track] = (person, step)
+    return {"recycled_reported": reported, "recycled_silently": silent}
 
 
 def growing(frames: int = 80) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -114,7 +137,7 @@ def tracker_loop(player, count_compiles) -> dict:
     per_step_covered, per_step_scored = np.zeros(horizon), np.zeros(horizon)
     restarted = 0
     with count_compiles() as compiles:
-        for stamp, ids, xy, lost in crowd():
+        for stamp, ids, xy, lost, _ in crowd():
             started = time.perf_counter()
             player.forget(lost)
             out = player.step(ids, xy, time=stamp)
@@ -127,7 +150,8 @@ def tracker_loop(player, count_compiles) -> dict:
             radius.extend(out.delayed.issued[mask[:, -1], -1].tolist())
     coverage = per_step_covered / np.maximum(per_step_scored, 1)
     ms = 1e3 * np.array(seconds)
-    return {"p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
+    return {**recycled(crowd(), player.model.config.obs_len),
+            "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
             "max_ms": float(ms.max()), "loop_compiles": compiles.count, "restarts": restarted,
             "coverage": float(per_step_covered.sum() / per_step_scored.sum()),
             "coverage_min": float(coverage.min()), "coverage_max": float(coverage.max()),

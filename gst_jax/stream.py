@@ -471,9 +471,9 @@ class Stream:
         """Compile the step of every capacity this stream can grow to while it holds at most
         `max_people` tracks (those in view and those unseen for fewer than obs_len steps), so
         that no step compiles later; returns the capacities. Each is one program: with
-        CrowdNav++'s predictor and DtACI regions 4-10 s apiece on a 2-core CPU, about 27 s for
-        the six up to 64 (docs/robot.md); a few tenths of a second each from a warm
-        `compilation_cache`. The stream's own state is left as it was."""
+        CrowdNav++'s predictor and DtACI regions, 35 s for the six up to 64 on a loaded 2-core
+        CPU, 5.8 s from a warm `compilation_cache` (the programs read, each step traced)
+        (docs/robot.md). The stream's own state is left as it was."""
         if not (isinstance(max_people, numbers.Integral) and max_people >= 0):
             raise DataError(f"warm_up: max_people must be a whole number, got {max_people!r}")
         largest = bucket_size(max_people + (1 if self.robot else 0))
