@@ -122,9 +122,9 @@ def run(command: Callable[[argparse.Namespace], None], parser: argparse.Argument
     """Parse `argv` and run `command`; a user error ends the process with one line, a stop
     signal (Ctrl-C, SIGTERM) with one line and status 130."""
     args = parser.parse_args(argv)
-    use_compilation_cache(getattr(args, "compilation_cache", None))
     warnings.formatwarning = lambda message, *_, **__: f"warning: {message}\n"
     try:
+        use_compilation_cache(getattr(args, "compilation_cache", None))
         with stops_end_the_process(STOP_GRACE_S):
             command(args)
     except USER_ERRORS as error:
