@@ -1,7 +1,9 @@
 """The streaming predictor: a recorded scene replayed frame by frame predicts what the
 window-based `predict` does on the same windows; slots are reused, capacity grows, a track that
 appears is partially detected, bad frames are refused in one line; the pure step vmaps over
-robots."""
+robots. A robot's loop: nothing compiles after warm_up, compiled programs outlive the process,
+a recycled or forgotten id starts a new track whose predecessor's scores are dropped, NaN
+detections read as missed, timestamps fill gaps."""
 
 from __future__ import annotations
 
