@@ -79,10 +79,15 @@ def open_fraction(text: str) -> float:
     return value
 
 
-def parser(prog: str, doc: str) -> argparse.ArgumentParser:
-    """A command's parser, described by the first paragraph of its module docstring."""
-    return argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.split("\n\n")[0],
+def parser(prog: str, doc: str, *, compilation_cache: bool = False
+           ) -> argparse.ArgumentParser:
+    """A command's parser, described by the first paragraph of its module docstring;
+    compilation_cache: the command compiles a model's programs (--compilation-cache)."""
+    made = argparse.ArgumentParser(prog=f"python -m {prog}", description=doc.split("\n\n")[0],
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
+    if compilation_cache:
+        add_compilation_cache_flag(made)
+    return made
 
 
 # Compiled programs are kept here across runs (unless JAX_COMPILATION_CACHE_DIR says where):
@@ -90,17 +95,39 @@ def parser(prog: str, doc: str) -> argparse.ArgumentParser:
 COMPILATION_CACHE = Path.home() / ".cache" / "gst_jax" / "xla"
 
 
-def use_compilation_cache() -> None:
-    """Keep compiled programs in COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set.
+def use_compilation_cache(directory: str | None = None) -> None:
+    """Keep compiled programs in `directory` (--compilation-cache) if given, every program
+    however quickly it compiled (`gst_jax.compiles.use_persistent_cache`); else in
+    COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set.
 
     A command that computes nothing (`data stats`) must not pay for importing jax: where it
     is not imported yet, jax reads the setting from the environment when it is."""
+    if directory is not None:
+        path = Path(directory).expanduser().absolute()
+        if "jax" in sys.modules:
+            from gst_jax.compiles import use_persistent_cache
+
+            use_persistent_cache(path)
+        else:
+            path.mkdir(parents=True, exist_ok=True)
+            os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
+            os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
+        return
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         return
     if "jax" in sys.modules:
         sys.modules["jax"].config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
     else:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILATION_CACHE)
+
+
+def add_compilation_cache_flag(parser: argparse.ArgumentParser) -> None:
+    """--compilation-cache DIR, for the commands that compile a model's programs."""
+    parser.add_argument("--compilation-cache", metavar="DIR", default=None,
+                        help="keep every compiled program in DIR and load it from there in "
+                             "later runs, so that a restarted process does not compile again "
+                             "(default: $JAX_COMPILATION_CACHE_DIR if set, else "
+                             "~/.cache/gst_jax/xla, programs that compiled in over 1 s)")
 
 
 # Seconds from a stop signal (Ctrl-C, SIGTERM) to the end of a command that has not stopped
@@ -113,9 +140,9 @@ def run(command: Callable[[argparse.Namespace], None], parser: argparse.Argument
     """Parse `argv` and run `command`; a user error ends the process with one line, a stop
     signal (Ctrl-C, SIGTERM) with one line and status 130."""
     args = parser.parse_args(argv)
-    use_compilation_cache()
     warnings.formatwarning = lambda message, *_, **__: f"warning: {message}\n"
     try:
+        use_compilation_cache(getattr(args, "compilation_cache", None))
         with stops_end_the_process(STOP_GRACE_S):
             command(args)
     except USER_ERRORS as error:
@@ -350,9 +377,14 @@ def devices(args: argparse.Namespace, *, members: int | None = None) -> Devices 
 
 
 def add_output_flags(parser: argparse.ArgumentParser, *, workdir_help: str,
-                     workdir_default: str | None = None) -> None:
+                     workdir_default: str | None = None, compilation_cache: bool = False
+                     ) -> None:
+    """--workdir and --json; with compilation_cache, --compilation-cache too (for a
+    subcommand's parser, where `parser(..., compilation_cache=True)` cannot put it)."""
     parser.add_argument("--workdir", default=workdir_default, help=workdir_help)
     parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    if compilation_cache:
+        add_compilation_cache_flag(parser)
 
 
 def model_spec(spec: str | None) -> str | None:

@@ -22,7 +22,7 @@ from gst_jax.runs import load_model
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = cli.parser("gst_jax.evaluate", __doc__)
+    parser = cli.parser("gst_jax.evaluate", __doc__, compilation_cache=True)
     parser.add_argument("model", nargs="?", help="a work directory of `python -m gst_jax.train` "
                         "(or one of its checkpoints/<epoch>), SWEEP_DIR:MEMBER, or pretrained:NAME")
     parser.add_argument("--predictions", metavar="FILE", help="instead of a model, score this "

@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> None:
         "about 0.27 MB of memory each with GST (default: %(default)s)")
     add("--overwrite", action="store_true", help="replace a record of the same run")
     cli.add_output_flags(evaluate_parser, workdir_help="output directory (default: "
-                         "runs/navigate)", workdir_default="runs/navigate")
+                         "runs/navigate)", workdir_default="runs/navigate", compilation_cache=True)
     cli.run(navigate, parser, argv)
 
 

@@ -8,14 +8,21 @@ Each track keeps its last `obs_len` positions with a detection mask in a slot of
 capacity, as a window's pedestrians do: a track that appears is partially detected (GST's
 point: it is predicted from the steps it was seen), one unseen for `obs_len` steps is dropped
 and its slot reused. Capacity grows by the buckets of `gst_jax.data.bucket_size`, so a crowd
-that changes size meets few compiled programs.
+that changes size meets few compiled programs; `Stream.warm_up` compiles them all before the
+robot moves, and `compilation_cache=DIR` keeps them on disk for the next process.
+
+A tracker's id names one person until the tracker says otherwise: `Stream.forget(ids)` ends
+those tracks (an id the tracker recycles then starts a new one), and an id that reappears
+farther from its last position than `max_speed` allows over the elapsed steps starts a new
+track too (`StreamOutput.restarted`), so that two people are never glued into one history and
+the old person's pending predictions are never scored against the newcomer.
 
 Underneath, everything is a pure function of arrays, so that it jits, vmaps over robots
 (environments, as CrowdNav++ trains) and runs inside a planner's program:
 
     state = init_state(capacity, obs_len)               # StreamState
     state = observe(state, frame)                        # Frame: ids (M,), positions (M, 2)
-    futures, predicted = predict_slots(model, key, state)
+    futures, predicted = predict_slots(model, params, key, state)
 
 `Stream` is the convenience around them: numpy in and out, ids in any order, capacity
 growth. The model is any gst_jax model (the paper's, `crowdnav_sim`, ...) or CrowdNav++'s
@@ -26,6 +33,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
+import numbers
 from typing import Any, Callable, NamedTuple
 
 import flax
@@ -35,12 +44,22 @@ import numpy as np
 
 from gst_jax.config import ModelConfig
 from gst_jax import conformal, crowdnav
+from gst_jax.compiles import use_persistent_cache
 from gst_jax.data import SceneBatch, bucket_size, node_mask_from_positions
+from gst_jax.data.batching import LARGEST_COORDINATE
 from gst_jax.errors import DataError
 from gst_jax.predict import make_predict
 
 # The id of a free slot; track ids are 0 or more (int32).
 FREE = -1
+# `Stream`'s default max_speed (m/s): a brisk walk. An id seen again farther away than this
+# speed allows over the steps since it was last seen starts a new track.
+MAX_SPEED = 2.5
+# What `Stream(non_finite=...)` does with a detection whose position is NaN or infinite.
+NON_FINITE = ("raise", "undetected")
+# A timestamped frame may lie this far (in model steps) from a whole number of steps after the
+# last frame; farther is refused.
+TIME_TOLERANCE = 0.25
 
 
 @flax.struct.dataclass
@@ -53,6 +72,11 @@ class StreamState:
     detected: (C, T) float32, 1 where the track was detected.
     dropped: () int32, new tracks refused so far for want of a free slot (the host grows
       the capacity and steps again when it rises).
+    fresh: (C,) bool, the slots whose history and pending predictions belong to no track of
+      before the last `observe`: a new track took the slot, the track was forgotten
+      (`Frame.lost`) or restarted.
+    restarted: (C,) bool, the slots whose track was restarted at the last `observe`: its id
+      reappeared farther than the maximum speed allows (`observe`'s max_jump).
     feed: the last P predictions of every slot, scored as the future is observed
       (`conformal.ScoreBufferState`), or None without regions.
     regions: the conformal state of the regions (`Regions`): one instance per horizon step
@@ -63,6 +87,8 @@ class StreamState:
     positions: jax.Array
     detected: jax.Array
     dropped: jax.Array
+    fresh: jax.Array
+    restarted: jax.Array
     feed: Any = None
     regions: Any = None
 
@@ -72,10 +98,13 @@ class StreamState:
 
 
 class Frame(NamedTuple):
-    """The people detected in one frame: ids (M,) int32 (FREE pads), positions (M, 2)."""
+    """The people detected in one frame: ids (M,) int32 (FREE pads), positions (M, 2); lost:
+    (L,) int32 the ids whose tracks end before this frame's detections are matched (FREE
+    pads; an id among them that is also detected now starts a new track), or None."""
 
     ids: jax.Array
     positions: jax.Array
+    lost: jax.Array | None = None
 
 
 def init_state(capacity: int, obs_len: int, regions: "Regions | None" = None,
@@ -84,21 +113,34 @@ def init_state(capacity: int, obs_len: int, regions: "Regions | None" = None,
     state = StreamState(track_ids=jnp.full((capacity,), FREE, jnp.int32),
                         positions=jnp.zeros((capacity, obs_len, 2), jnp.float32),
                         detected=jnp.zeros((capacity, obs_len), jnp.float32),
-                        dropped=jnp.zeros((), jnp.int32))
+                        dropped=jnp.zeros((), jnp.int32),
+                        fresh=jnp.zeros((capacity,), bool),
+                        restarted=jnp.zeros((capacity,), bool))
     if regions is None:
         return state
     return state.replace(feed=conformal.score_buffer_init(capacity, pred_len, jnp.float32),
                          regions=regions.init(capacity, pred_len))
 
 
-def observe(state: StreamState, frame: Frame) -> StreamState:
-    """The state one step later: every slot's history moves back a step, the frame's people
+def observe(state: StreamState, frame: Frame, max_jump: float | None = None) -> StreamState:
+    """The state one step later: every slot's history moves back a step, the tracks of the
+    frame's lost ids and those unseen for all T steps free their slots, and the frame's people
     are written at the newest step (a known id into its slot, a new id into a free slot in
-    the order of the frame), and tracks unseen for all T steps free their slots first."""
+    the order of the frame).
+
+    max_jump: metres per step. A known id detected farther from its last detected position
+    than max_jump times the steps since restarts its track in its slot (the history is
+    cleared: it is another person under a recycled id); None: never."""
     ids = jnp.asarray(frame.ids, jnp.int32)
     positions = jnp.roll(state.positions, -1, axis=-2).at[..., -1, :].set(0.0)
     detected = jnp.roll(state.detected, -1, axis=-1).at[..., -1].set(0.0)
     track_ids = jnp.where(detected.any(axis=-1), state.track_ids, FREE)
+    lost = jnp.zeros(track_ids.shape, bool)
+    if frame.lost is not None:
+        gone = jnp.asarray(frame.lost, jnp.int32)
+        lost = ((track_ids[:, None] == gone[None, :]) & (gone != FREE)[None, :]).any(axis=1)
+        lost &= track_ids != FREE
+        track_ids = jnp.where(lost, FREE, track_ids)
 
     present = ids != FREE                                                       # (M,)
     same = (track_ids[:, None] == ids[None, :]) & present[None, :]              # (C, M)
@@ -113,11 +155,24 @@ def observe(state: StreamState, frame: Frame) -> StreamState:
     track_ids = jnp.where(taken.any(axis=1), (taken * ids[None, :]).sum(axis=1), track_ids)
     xy = jnp.asarray(frame.positions, jnp.float32)
     newest = (slot_of[..., None] * xy[None]).sum(axis=1)                        # (C, 2)
+    restarted = jnp.zeros(track_ids.shape, bool)
+    if max_jump is not None:
+        steps = detected.shape[-1]
+        # The last detected step of each slot's history and how many steps ago it was.
+        last = jnp.max(jnp.where(detected > 0, jnp.arange(steps), -1), axis=-1)  # (C,)
+        last_xy = jnp.take_along_axis(positions, jnp.maximum(last, 0)[:, None, None],
+                                      axis=-2)[:, 0]
+        jump = jnp.linalg.norm(newest - last_xy, axis=-1)
+        restarted = same.any(axis=1) & (jump > max_jump * (steps - 1 - last))
+    # A slot given to another person starts empty.
+    cleared = taken.any(axis=1) | lost | restarted
+    positions = jnp.where(cleared[:, None, None], 0.0, positions)
+    detected = jnp.where(cleared[:, None], 0.0, detected)
     positions = positions.at[:, -1].set(jnp.where(written[:, None], newest, 0.0))
     detected = detected.at[:, -1].set(written.astype(jnp.float32))
     dropped = state.dropped + (new & ~taken.any(axis=0)).sum().astype(jnp.int32)
     return state.replace(track_ids=track_ids, positions=positions, detected=detected,
-                         dropped=dropped)
+                         dropped=dropped, fresh=cleared, restarted=restarted)
 
 
 def as_batch(state: StreamState) -> SceneBatch:
@@ -152,7 +207,11 @@ class Regions:
 
     def __post_init__(self):
         if self.method not in ("dtaci", "aci", None):
-            raise ValueError(f"method must be 'dtaci', 'aci' or None, got {self.method!r}")
+            raise DataError(f"Regions: method must be 'dtaci', 'aci' or None, got "
+                            f"{self.method!r}")
+        if not (isinstance(self.alpha, numbers.Real) and 0 < self.alpha < 1):
+            raise DataError(f"Regions: alpha (the target miscoverage) must lie in (0, 1), got "
+                            f"{self.alpha!r}")
 
     @property
     def online(self) -> conformal.OnlineConformal | None:
@@ -260,30 +319,39 @@ def predict_slots(model: StreamModel, params, key: jax.Array, state: StreamState
     return prediction.positions[:, 0], prediction.predicted_mask[0]
 
 
-def make_step(model: StreamModel, regions: Regions | None = None) -> Callable:
+def make_step(model: StreamModel, regions: Regions | None = None, *,
+              max_speed: float | None = None) -> Callable:
     """The pure `step(params, state, frame, key) -> (state, futures, predicted, radii,
     delayed)`: observe the frame, predict every slot (`predict_slots`), and with `regions`
     score the earlier predictions and issue this step's radii (C, P) (`Regions.update`;
-    without, radii and delayed are None). jit it, vmap it over robots."""
+    without, radii and delayed are None). max_speed (m/s): a known id seen farther than this
+    speed allows since its last detection starts a new track (`observe`); None: never. jit
+    it, vmap it over robots."""
+    max_jump = None if max_speed is None else max_speed * model.config.step_s
+
     def step(params, state: StreamState, frame: Frame, key: jax.Array):
-        before = state.track_ids
-        state = observe(state, frame)
+        state = observe(state, frame, max_jump)
         predict_key, regions_key = jax.random.split(key)
         futures, predicted = predict_slots(model, params, predict_key, state)
         if regions is None:
             return state, futures, predicted, None, None
-        new_slots = (state.track_ids != before) & (state.track_ids != FREE)
-        state, radii, delayed = regions.update(state, regions_key, new_slots, futures,
+        state, radii, delayed = regions.update(state, regions_key, state.fresh, futures,
                                                predicted)
         return state, futures, predicted, radii, delayed
     return step
 
 
 @functools.lru_cache(maxsize=16)
-def _jitted_step(model: StreamModel, regions: Regions | None) -> Callable:
-    """`make_step` jitted once per (model, regions): streams of one model, one after another
-    (a recorded scene's files), share its compiled programs."""
-    return jax.jit(make_step(model, regions))
+def _jitted_step(model: StreamModel, regions: Regions | None,
+                 max_speed: float | None) -> Callable:
+    """`make_step` jitted once per (model, regions, max_speed), with the key of the step
+    folded in: streams of one model, one after another (a recorded scene's files), share its
+    compiled programs."""
+    step = make_step(model, regions, max_speed=max_speed)
+
+    def host_step(params, state: StreamState, frame: Frame, key: jax.Array, index: jax.Array):
+        return step(params, state, frame, jax.random.fold_in(key, index))
+    return jax.jit(host_step)
 
 
 class StreamOutput(NamedTuple):
@@ -292,22 +360,34 @@ class StreamOutput(NamedTuple):
     the radii of their discs (L, P) (metres, around each predicted step; None without).
     delayed: the scores this frame's observations gave the earlier predictions, with the radii
     issued with them (`conformal.DelayedScores`, (C, P) over the slots), for measuring
-    coverage; None without regions."""
+    coverage; None without regions. restarted: the ids whose track restarted at this frame,
+    being seen farther than `max_speed` allows from where they were last seen (another person
+    under a recycled id, or a tracker's switch)."""
 
     ids: np.ndarray
     futures: np.ndarray
     radii: np.ndarray | None = None
     delayed: conformal.DelayedScores | None = None
+    restarted: np.ndarray = np.zeros(0, np.int32)
 
 
 class Stream:
     """A stream over a tracker's output (numpy in and out): `step(ids, positions)` once per
-    model step (`config.step_s` apart), the people detected then; ids are the tracker's,
-    any non-negative integers.
+    model step (`config.step_s` apart, or give each frame's `time`), the people detected then;
+    ids are the tracker's, any non-negative integers.
 
     regions: conformal discs around the predictions (`Regions`), or None.
     robot: `step` also takes the robot's position, which joins the graph as one more agent
     (the people's predictions may react to it); it is never predicted.
+    max_speed: metres per second (default MAX_SPEED, a brisk walk). An id seen farther from
+    its last position than this speed allows over the steps since starts a new track (its
+    old history and pending predictions are dropped; `StreamOutput.restarted`); None: never.
+    non_finite: "raise" (default) refuses a frame with a NaN or infinite position in one line
+    (`DataError`); "undetected" reads such a detection as that person not detected at this
+    step, the others' detections kept.
+    compilation_cache: a folder where JAX keeps every compiled program of this process
+    (`gst_jax.compiles.use_persistent_cache`): a restarted robot loads its programs from it
+    instead of compiling them again. None: the process's own setting.
     """
 
     # The robot's id among the tracks: no tracker's.
@@ -315,56 +395,165 @@ class Stream:
 
     def __init__(self, run, *, num_samples: int = 1, mean: bool = True, capacity: int = 8,
                  seed: int = 0, convention: str = "gst", regions: Regions | None = None,
-                 robot: bool = False):
+                 robot: bool = False, max_speed: float | None = MAX_SPEED,
+                 non_finite: str = "raise", compilation_cache: str | None = None):
+        if non_finite not in NON_FINITE:
+            raise DataError(f"Stream: non_finite must be one of {NON_FINITE}, got "
+                            f"{non_finite!r}")
+        if max_speed is not None and not (isinstance(max_speed, numbers.Real)
+                                          and 0 < max_speed < math.inf):
+            raise DataError(f"Stream: max_speed must be a positive number of m/s (or None), "
+                            f"got {max_speed!r}")
+        if compilation_cache is not None:
+            use_persistent_cache(compilation_cache)
         self.model = StreamModel(run.model_config, num_samples, mean, convention)
         self.params = run.params
         self.regions, self.robot = regions, robot
+        self.max_speed = None if max_speed is None else float(max_speed)
+        self.non_finite = non_finite
         self.key = jax.random.key(seed)
-        self.frames = 0
+        self.frames = 0              # model steps so far (the key of step t folds in t)
+        self.restarts = 0            # tracks restarted so far (`StreamOutput.restarted`)
+        self._lost: set[int] = set()
+        self._last_time: float | None = None
         config = run.model_config
-        self.state = init_state(bucket_size(capacity), config.obs_len, regions, config.pred_len)
-        self._step = _jitted_step(self.model, regions)
+        self.state = _initial_state(bucket_size(capacity), config.obs_len, regions,
+                                    config.pred_len)
+        # Per track, the regions of one fresh slot, to give the slots a growing stream adds.
+        self._fresh_regions = None if regions is None or regions.pooled else _host_tree(
+            regions.init(1, config.pred_len))
+        self._step = _jitted_step(self.model, regions, self.max_speed)
 
-    def step(self, ids, positions, robot_xy=None) -> StreamOutput:
-        ids, positions = _checked_frame(ids, positions)
+    def step(self, ids, positions, robot_xy=None, *, time: float | None = None
+             ) -> StreamOutput:
+        """The predictions after this frame: ids (M,) of the people detected now, positions
+        (M, 2) in metres. time: the frame's time in seconds (any origin); a frame k model steps
+        after the last (to a quarter of a step) counts k - 1 frames in between where nobody was
+        detected, and one farther off the model's steps is refused (`DataError`). Without
+        time, a frame is one model step after the last."""
+        ids, positions = _checked_frame(ids, positions, self.non_finite)
         if self.robot:
             if robot_xy is None:
                 raise DataError("this stream has the robot as an agent: give robot_xy")
+            robot_xy = np.asarray(robot_xy, np.float64)
+            if robot_xy.shape not in ((2,), (1, 2)) or not np.isfinite(robot_xy).all() or (
+                    np.abs(robot_xy).max() > LARGEST_COORDINATE):
+                raise DataError(f"robot_xy must be one finite position (2,) within "
+                                f"{LARGEST_COORDINATE:.0e} m, got {robot_xy.tolist()}")
             ids = np.append(ids, self.ROBOT).astype(np.int32)
-            positions = np.vstack([positions, np.reshape(robot_xy, (1, 2))])
+            positions = np.vstack([positions, robot_xy.reshape(1, 2)])
+        steps = self._steps_since(time)
+        # Beyond obs_len + pred_len empty steps nothing is left to predict or to score.
+        config = self.model.config
+        for _ in range(min(steps - 1, config.obs_len + config.pred_len)):
+            self._advance(np.zeros(0, np.int32), np.zeros((0, 2)))
+        self.frames += steps - 1 - min(steps - 1, config.obs_len + config.pred_len)
+        state, futures, predicted, radii, delayed = self._advance(ids, positions)
+        track_ids = np.asarray(state.track_ids)
+        restarted = np.sort(track_ids[np.asarray(state.restarted)
+                                      & (track_ids != self.ROBOT)])
+        self.restarts += len(restarted)
+        keep = (predicted > 0) & (track_ids != FREE) & (track_ids != self.ROBOT)
+        futures = np.moveaxis(futures[:, :, keep], 2, 0)                        # (L, K, P, 2)
+        return StreamOutput(track_ids[keep], futures[:, 0] if self.model.mean else futures,
+                            None if radii is None else radii[keep], delayed, restarted)
+
+    def forget(self, ids) -> None:
+        """End the tracks of these ids (a tracker's lost tracks) at the next step, before that
+        frame's detections: an id among them seen again starts a new track, and the old
+        track's pending predictions are never scored."""
+        ids = np.asarray(ids).reshape(-1)
+        if len(ids) and not np.issubdtype(ids.dtype, np.integer):
+            raise DataError(f"forget: track ids must be integers, got {ids[:5].tolist()}")
+        self._lost.update(int(i) for i in ids)
+
+    def warm_up(self, max_people: int) -> tuple[int, ...]:
+        """Compile the step of every capacity this stream can grow to while it holds at most
+        `max_people` tracks (those in view and those unseen for fewer than obs_len steps), so
+        that no step compiles later; returns the capacities. Each is one program: with
+        CrowdNav++'s predictor and DtACI regions, 35 s for the six up to 64 on a loaded 2-core
+        CPU, 5.8 s from a warm `compilation_cache` (the programs read, each step traced)
+        (docs/robot.md). The stream's own state is left as it was."""
+        if not (isinstance(max_people, numbers.Integral) and max_people >= 0):
+            raise DataError(f"warm_up: max_people must be a whole number, got {max_people!r}")
+        largest = bucket_size(max_people + (1 if self.robot else 0))
+        capacities = [self.state.capacity]
+        while capacities[-1] < largest:
+            capacities.append(bucket_size(capacities[-1] + 1))
+        state = self.state
+        try:
+            for capacity in capacities:         # the step on the tracks as they are, unkept
+                self.state = state
+                self.state = self._grown(capacity)
+                self._run(np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(0, np.int32))
+        finally:
+            self.state = state
+        return tuple(capacities)
+
+    def _steps_since(self, time) -> int:
+        """Model steps from the last frame to a frame at `time` (1 without a time)."""
+        step_s = self.model.config.step_s
+        if time is None:
+            if self._last_time is not None:
+                self._last_time += step_s
+            return 1
+        if not (isinstance(time, numbers.Real) and math.isfinite(time)):
+            raise DataError(f"a frame's time must be a finite number of seconds, got {time!r}")
+        if self._last_time is None:
+            self._last_time = float(time)
+            return 1
+        elapsed = float(time) - self._last_time
+        steps = round(elapsed / step_s)
+        if steps < 1 or abs(elapsed / step_s - steps) > TIME_TOLERANCE:
+            raise DataError(
+                f"a frame at time {time:g} s comes {elapsed:g} s after the last "
+                f"({elapsed / step_s:.2f} model steps of {step_s:g} s): frames must be a whole "
+                f"number of steps apart, to within {TIME_TOLERANCE:g} of a step")
+        self._last_time = float(time)
+        return steps
+
+    def _advance(self, ids: np.ndarray, positions: np.ndarray) -> tuple:
+        """One model step over a checked frame: the state moves on; returns it and the
+        step's outputs as numpy arrays."""
+        lost = np.zeros(0, np.int32)
+        if self._lost:
+            held = set(np.asarray(self.state.track_ids).tolist())
+            lost = np.array(sorted(self._lost & held), np.int32)
+            self._lost.clear()
         if len(ids) > self.state.capacity:
             self.state = self._grown(bucket_size(len(ids)))
-        key = jax.random.fold_in(self.key, self.frames)
         while True:
-            # Frames padded to the capacity: one compiled step per capacity.
-            width = self.state.capacity
-            frame = Frame(np.pad(ids, (0, width - len(ids)), constant_values=FREE),
-                          np.pad(positions, [(0, width - len(ids)), (0, 0)]).astype(np.float32))
-            state, futures, predicted, radii, delayed = self._step(self.params, self.state,
-                                                                   frame, key)
+            state, *outputs = self._run(ids, positions, lost)
             if int(state.dropped) == int(self.state.dropped):
                 break
             self.state = self._grown(bucket_size(self.state.capacity + 1))
         self.state, self.frames = state, self.frames + 1
-        track_ids = np.asarray(state.track_ids)
-        keep = (np.asarray(predicted) > 0) & (track_ids != FREE) & (track_ids != self.ROBOT)
-        futures = np.moveaxis(np.asarray(futures)[:, :, keep], 2, 0)            # (L, K, P, 2)
-        return StreamOutput(track_ids[keep], futures[:, 0] if self.model.mean else futures,
-                            None if radii is None else np.asarray(radii)[keep],
-                            None if delayed is None else jax.tree.map(np.asarray, delayed))
+        return (state, *outputs)
+
+    def _run(self, ids: np.ndarray, positions: np.ndarray, lost: np.ndarray) -> tuple:
+        """The jitted step on the state as it is, frames padded to the capacity (one compiled
+        step per capacity): the state (on the device) and the outputs as numpy."""
+        width = self.state.capacity
+        frame = Frame(np.pad(ids, (0, width - len(ids)), constant_values=FREE),
+                      np.pad(positions, [(0, width - len(ids)), (0, 0)]).astype(np.float32),
+                      np.pad(lost, (0, width - len(lost)), constant_values=FREE))
+        state, *outputs = self._step(self.params, self.state, frame, self.key,
+                                     np.int32(self.frames))
+        return (state, *_host_tree(outputs))
 
     def _grown(self, capacity: int) -> StreamState:
         """The same tracks in `capacity` slots (the new ones free and, per track, with fresh
-        regions)."""
+        regions); numpy on the host, so that growing compiles nothing."""
         state, extra = self.state, capacity - self.state.capacity
 
         def pad(array, axis=0, value=0):
             widths = [(0, 0)] * array.ndim
             widths[axis] = (0, extra)
-            return jnp.pad(array, widths, constant_values=value)
+            return np.pad(array, widths, constant_values=value)
 
         grown = state.replace(track_ids=pad(state.track_ids, value=FREE),
-                              positions=pad(state.positions), detected=pad(state.detected))
+                              positions=pad(state.positions), detected=pad(state.detected),
+                              fresh=pad(state.fresh), restarted=pad(state.restarted))
         if self.regions is None:
             return grown
         feed = state.feed._replace(predicted=pad(state.feed.predicted, 1),
@@ -372,19 +561,35 @@ class Stream:
                                    issued=pad(state.feed.issued, 1))
         regions = state.regions
         if regions is not None and not self.regions.pooled:
-            fresh = self.regions.init(extra, feed.predicted.shape[0])
-            regions = jax.tree.map(lambda old, new: jnp.concatenate([old, new]), regions, fresh)
+            regions = jax.tree.map(
+                lambda old, new: np.concatenate([old, np.repeat(new, extra, axis=0)]),
+                regions, self._fresh_regions)
         return grown.replace(feed=feed, regions=regions)
 
 
-def _checked_frame(ids, positions) -> tuple[np.ndarray, np.ndarray]:
-    """A frame's ids (M,) and positions (M, 2), or a one-line refusal."""
+# `init_state` as one program (a few hundredths of a second from a warm compilation cache)
+# rather than two dozen eager operations, each traced and compiled or loaded on its own.
+_initial_state = jax.jit(init_state, static_argnums=(0, 1, 2, 3))
+
+
+def _host_tree(tree):
+    """Every array of a pytree as numpy (None stays None)."""
+    return jax.tree.map(np.asarray, tree)
+
+
+def _checked_frame(ids, positions, non_finite: str = "raise") -> tuple[np.ndarray, np.ndarray]:
+    """A frame's ids (M,) and positions (M, 2), or a one-line refusal; with non_finite
+    "undetected", the people whose position is not finite left out."""
     ids = np.asarray(ids)
-    positions = np.asarray(positions, np.float64).reshape(-1, 2) if np.size(positions) else (
-        np.zeros((0, 2)))
-    if ids.ndim != 1 or len(ids) != len(positions):
-        raise DataError(f"a frame needs ids (M,) and positions (M, 2); got {ids.shape} and "
-                        f"{np.shape(positions)}")
+    positions = np.asarray(positions)
+    if ids.ndim != 1:
+        raise DataError(f"a frame's ids must be (M,), got shape {ids.shape}")
+    if positions.shape != (len(ids), 2) and not (len(ids) == 0 and positions.size == 0):
+        raise DataError(f"a frame of {len(ids)} ids needs positions ({len(ids)}, 2): one "
+                        f"(x, y) row per id; got shape {positions.shape}")
+    if not np.issubdtype(positions.dtype, np.number):
+        raise DataError(f"a frame's positions must be numbers, got {positions.dtype}")
+    positions = positions.astype(np.float64).reshape(len(ids), 2)
     if len(ids) and (not np.issubdtype(ids.dtype, np.integer) or ids.min() < 0
                      or ids.max() >= Stream.ROBOT):
         raise DataError(f"track ids must be integers from 0 to {Stream.ROBOT - 1}, got "
@@ -392,8 +597,17 @@ def _checked_frame(ids, positions) -> tuple[np.ndarray, np.ndarray]:
     if len(np.unique(ids)) != len(ids):
         values, counts = np.unique(ids, return_counts=True)
         raise DataError(f"track id {values[counts > 1][0]} appears twice in one frame")
-    if not np.isfinite(positions).all():
-        index = int(np.argwhere(~np.isfinite(positions))[0, 0])
+    finite = np.isfinite(positions).all(axis=1)
+    if not finite.all() and non_finite == "raise":
+        index = int(np.flatnonzero(~finite)[0])
         raise DataError(f"track {ids[index]}'s position is {positions[index].tolist()}: not "
-                        "finite (leave an undetected person out of the frame)")
-    return ids.astype(np.int32), positions
+                        "finite (leave an undetected person out of the frame, or "
+                        "Stream(non_finite=\"undetected\"))")
+    far = finite & (np.abs(np.where(np.isfinite(positions), positions, 0)).max(
+        axis=1, initial=0) > LARGEST_COORDINATE)
+    if far.any():
+        index = int(np.flatnonzero(far)[0])
+        raise DataError(f"track {ids[index]}'s position {positions[index].tolist()} lies "
+                        f"beyond {LARGEST_COORDINATE:.0e} m, where float32 loses millimetres: "
+                        "subtract a local origin first")
+    return ids[finite].astype(np.int32), positions[finite]

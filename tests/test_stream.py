@@ -1,11 +1,14 @@
 """The streaming predictor: a recorded scene replayed frame by frame predicts what the
 window-based `predict` does on the same windows; slots are reused, capacity grows, a track that
 appears is partially detected, bad frames are refused in one line; the pure step vmaps over
-robots."""
+robots. A robot's loop: nothing compiles after warm_up, compiled programs outlive the process,
+a recycled or forgotten id starts a new track whose predecessor's scores are dropped, NaN
+detections read as missed, timestamps fill gaps."""
 
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import jax
@@ -14,6 +17,7 @@ import numpy as np
 import pytest
 
 from gst_jax import coverage, data, stream
+from gst_jax.compiles import count_compiles
 from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
 from gst_jax.errors import DataError
@@ -76,7 +80,7 @@ def test_the_paper_model_streams_the_windows_observations_exactly():
     [path] = data.protocols.scene_files(data.default_data_dir(), "eth")
     tracks = read_tracks(path)
     windows = {w.start_frame: w for w in kept(cut_windows(tracks, grid.seq_len, grid.obs_len))}
-    player = stream.Stream(run, capacity=16)
+    player = stream.Stream(run, capacity=16, max_speed=None)     # ETH's walkers exceed 2.5 m/s
     checked = 0
     for f, ids, xy in frames_of(tracks)[:400]:
         out = player.step(ids, xy)
@@ -235,3 +239,216 @@ def test_the_shifted_crowd_of_the_coverage_study_steps_twice_as_far_halfway():
     frames = speed_doubling_crowd(duration_s=30.0)            # 121 simulator steps
     steps = np.diff([frame for frame, _, _ in frames])
     assert len(frames) == 81 and list(steps[:39]) == [1] * 39 and set(steps[40:]) == {2}
+
+
+# --- A robot's loop: no compiling once warmed up, one track per person, frames in time ----------
+
+
+@pytest.fixture(scope="module")
+def sim_run():
+    return load_model("pretrained:crowdnav_sim")
+
+
+@pytest.fixture
+def own_compilation_cache():
+    """The test sets a compilation cache of its own; the session's is set back after it."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    folder = jax.config.jax_compilation_cache_dir
+    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
+    yield
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
+    compilation_cache.reset_cache()
+
+
+def walkers(count: int, steps: int, step_s: float = 0.25) -> np.ndarray:
+    """(steps, count, 2) straight walks at up to 1.4 m/s from points of a 12 m square."""
+    rng = np.random.default_rng(3)
+    start, velocity = rng.uniform(-6, 6, (count, 2)), rng.uniform(-1, 1, (count, 2))
+    return start + velocity * step_s * np.arange(steps)[:, None, None]
+
+
+def slot_of(player: stream.Stream, track: int) -> int:
+    return int(np.flatnonzero(np.asarray(player.state.track_ids) == track)[0])
+
+
+def test_after_warm_up_a_growing_crowd_compiles_nothing(sim_run):
+    """Every compilation is counted, a program loaded from the persistent cache included:
+    after warm_up(20), a crowd growing from 2 to 20 people (capacity 8 -> 24), with a
+    forgotten id and a recycled one on the way, compiles nothing."""
+    player = stream.Stream(sim_run, regions=stream.Regions("dtaci", 0.1))
+    assert player.warm_up(20) == (8, 16, 24)
+    assert player.state.capacity == 8 and player.frames == 0
+    xy = walkers(20, 30)
+    with count_compiles() as compiles:
+        for t in range(30):
+            people = min(20, 2 + t)
+            if t == 12:
+                player.forget([0])
+            if t == 20:
+                xy[t:, 1] += 8.0                       # id 1 now names someone 8 m away
+            out = player.step(np.arange(people), xy[t, :people])
+    assert player.state.capacity == 24 and len(out.ids) == 20 and player.restarts == 1
+    assert compiles.count == 0
+
+
+def test_a_compilation_cache_gives_a_restarted_stream_its_programs(sim_run, tmp_path, caplog,
+                                                                   own_compilation_cache):
+    """Stream(compilation_cache=DIR) keeps the compiled step in DIR; a stream built after
+    every in-memory program is gone (as in a restarted process) loads it from there."""
+    folder = tmp_path / "xla"
+    stream.Stream(sim_run, max_speed=3.0, compilation_cache=folder).warm_up(8)
+    assert any("host_step" in path.name for path in folder.iterdir())
+    stream._jitted_step.cache_clear()
+    jax.clear_caches()
+    caplog.set_level(logging.DEBUG, logger="jax._src.compiler")
+    stream.Stream(sim_run, max_speed=3.0, compilation_cache=folder).warm_up(8)
+    loaded = [r.getMessage() for r in caplog.records
+              if r.getMessage().startswith("Persistent compilation cache hit")]
+    assert any("host_step" in message for message in loaded)
+
+
+def test_the_commands_that_compile_take_a_compilation_cache_folder(tmp_path, capsys,
+                                                                    own_compilation_cache):
+    from gst_jax import cli, evaluate, navigate
+    from gst_jax.conformal import __main__ as conformal_command
+    from gst_jax.predict import __main__ as predict_command
+
+    for main, argv in [(conformal_command.main, ["--help"]), (predict_command.main, ["--help"]),
+                       (evaluate.main, ["--help"]), (navigate.main, ["evaluate", "--help"])]:
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert "--compilation-cache DIR" in capsys.readouterr().out
+    parser = cli.parser("test", "A command that compiles one program.")
+    cli.add_compilation_cache_flag(parser)
+    cli.run(lambda args: jax.jit(lambda x: x * 3.0 + 1.0)(jnp.arange(7.0)).block_until_ready(),
+            parser, ["--compilation-cache", str(tmp_path / "cli")])
+    assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cli")
+    assert any((tmp_path / "cli").iterdir())
+
+
+def test_a_recycled_id_starts_a_new_track_and_the_old_persons_scores_are_dropped(sim_run):
+    """A tracker recycles id 1 for someone 10 m away: a new track (nothing glued to the old
+    history, no 10 m step predicted), and the old person's pending predictions are never
+    scored against the newcomer; the other person's are."""
+    player = stream.Stream(sim_run, regions=stream.Regions("dtaci", 0.1))
+    for t in range(8):
+        out = player.step([1, 2], [[0.3 * t, 0.0], [5.0, 0.2 * t]])
+    assert out.restarted.size == 0 and sorted(out.ids.tolist()) == [1, 2]
+    out = player.step([1, 2], [[12.4, 0.0], [5.0, 1.6]])
+    one, two = slot_of(player, 1), slot_of(player, 2)
+    assert out.restarted.tolist() == [1] and player.restarts == 1
+    np.testing.assert_array_equal(np.asarray(player.state.detected[one]), [0, 0, 0, 0, 1])
+    assert out.ids.tolist() == [2]                   # the newcomer is seen once: not predicted
+    assert not out.delayed.mask[one].any() and out.delayed.mask[two].all()
+    for t in range(1, 6):                            # the newcomer walks on slowly
+        out = player.step([1, 2], [[12.4 + 0.2 * t, 0.0], [5.0, 1.6 + 0.2 * t]])
+        # Its own predictions' errors, never those of the old person's (about 10 m).
+        assert out.delayed.scores[one].max() < 3.0
+    assert sorted(out.ids.tolist()) == [1, 2] and player.restarts == 1
+
+
+def test_a_jump_is_judged_over_the_steps_since_the_last_detection(sim_run):
+    """max_speed 2.5 m/s over steps of 0.25 s: unseen for two frames (3 steps), 1.5 m away
+    is a walk (2 m/s), 2.6 m away another person (3.5 m/s); max_speed=None never restarts."""
+    assert sim_run.model_config.step_s == 0.25
+    for max_speed, expected in [(stream.MAX_SPEED, [[], [5]]), (None, [[], []])]:
+        player = stream.Stream(sim_run, max_speed=max_speed)
+        for t in range(3):
+            player.step([4, 5], [[0.0, 0.0], [0.25 * t, 0.0]])
+        restarted = []
+        for jump in (1.5, 2.6):
+            x = float(np.asarray(player.state.positions[slot_of(player, 5), -1, 0]))
+            player.step([4], [[0.0, 0.0]])
+            player.step([4], [[0.0, 0.0]])
+            restarted.append(player.step([4, 5], [[0.0, 0.0], [x + jump, 0.0]]).restarted
+                             .tolist())
+        assert restarted == expected
+
+
+def test_a_forgotten_id_seen_again_is_a_new_track(sim_run):
+    player = stream.Stream(sim_run, regions=stream.Regions("dtaci", 0.1))
+    for t in range(7):
+        player.step([6, 7], [[0.3 * t, 0.0], [3.0, 0.3 * t]])
+    player.forget([7, 99])                           # 99: never seen, nothing to forget
+    out = player.step([6, 7], [[2.1, 0.0], [3.0, 2.1]])
+    seven = slot_of(player, 7)
+    np.testing.assert_array_equal(np.asarray(player.state.detected[seven]), [0, 0, 0, 0, 1])
+    assert not out.delayed.mask[seven].any() and out.restarted.size == 0
+    assert out.ids.tolist() == [6]
+    assert sorted(player.step([6, 7], [[2.4, 0.0], [3.0, 2.4]]).ids.tolist()) == [6, 7]
+
+
+def test_a_non_finite_detection_can_read_as_that_person_undetected(sim_run):
+    with pytest.raises(DataError, match="not finite"):
+        stream.Stream(sim_run).step([7, 8], [[np.nan, 0.0], [1.0, 1.0]])
+    with pytest.raises(DataError, match="non_finite must be one of"):
+        stream.Stream(sim_run, non_finite="drop")
+    player = stream.Stream(sim_run, non_finite="undetected")
+    for t in range(3):
+        player.step([7, 8], [[0.3 * t, 0.0], [1.0, 0.2 * t]])
+    out = player.step([7, 8], [[np.nan, 0.9], [1.0, 0.6]])
+    assert out.ids.tolist() == [8]                   # 7 missed now: not predicted
+    detected = np.asarray(player.state.detected)
+    np.testing.assert_array_equal(detected[slot_of(player, 7)], [0, 1, 1, 1, 0])
+    np.testing.assert_array_equal(detected[slot_of(player, 8)], [0, 1, 1, 1, 1])
+    out = player.step([7, 8], [[np.inf, 0.0], [1.0, 0.8]])
+    assert out.ids.tolist() == [8]
+
+
+def test_a_timestamped_frame_fills_a_gap_and_an_interval_off_the_steps_is_refused(sim_run):
+    """Steps of 0.25 s: the frame of 100.75 s is missing, so 101.0 s comes 2 steps after
+    100.5 s; 0.35 s (1.4 steps) is refused, 0.31 s (1.24 steps) is one step."""
+    player = stream.Stream(sim_run)
+    for t in (0.0, 0.25, 0.5, 1.0):
+        player.step([3], [[t, 0.0]], time=100.0 + t)
+    slot = slot_of(player, 3)
+    np.testing.assert_array_equal(np.asarray(player.state.detected[slot]), [1, 1, 1, 0, 1])
+    np.testing.assert_allclose(np.asarray(player.state.positions[slot, :, 0]),
+                               [0, 0.25, 0.5, 0, 1.0])
+    assert player.frames == 5
+    with pytest.raises(DataError, match=r"0\.35 s after the last \(1\.40 model steps of "
+                                        r"0\.25 s\): frames must be a whole number of steps"):
+        player.step([3], [[1.3, 0.0]], time=101.35)
+    with pytest.raises(DataError, match="after the last"):
+        player.step([3], [[1.3, 0.0]], time=100.5)
+    assert player.frames == 5
+    player.step([3], [[1.3, 0.0]], time=101.31)
+    player.step([3], [[1.6, 0.0]])                   # no time: one step later (101.56 s)
+    assert player.frames == 7
+    player.step([3], [[1.6, 0.0]], time=101.81)
+    player.step([3], [[9.0, 0.0]], time=101.81 + 3600)   # an hour later: a new track
+    np.testing.assert_array_equal(np.asarray(player.state.detected[slot_of(player, 3)]),
+                                  [0, 0, 0, 0, 1])
+    assert player.frames == 8 + 3600 * 4
+
+
+def test_positions_must_be_one_row_per_id_within_range(sim_run):
+    player = stream.Stream(sim_run)
+    with pytest.raises(DataError, match=r"a frame of 3 ids needs positions \(3, 2\): one "
+                                        r"\(x, y\) row per id; got shape \(2, 3\)"):
+        player.step([1, 2, 3], np.zeros((2, 3)))
+    with pytest.raises(DataError, match=r"track 2's position \[1000000000.0, 0.0\] lies "
+                                        r"beyond 1e\+04 m"):
+        player.step([1, 2], [[0.0, 0.0], [1e9, 0.0]])
+    assert player.frames == 0
+    player.step([1, 2, 3], np.zeros((3, 2)))
+    player.step([], [])
+    assert player.frames == 2
+
+
+@pytest.mark.parametrize("alpha", [float("nan"), 0.0, 1.0, -0.1, 1.5, "0.1"])
+def test_regions_refuse_an_alpha_outside_0_1_in_one_line(alpha):
+    with pytest.raises(DataError, match=r"^Regions: alpha \(the target miscoverage\) must lie "
+                                        r"in \(0, 1\), got"):
+        stream.Regions("dtaci", alpha)
+
+
+def test_the_docs_say_that_gensafenavs_released_file_gives_other_radii():
+    """GenSafeNav's released DtACI truncates some losses to integers (np.vectorize infers an
+    integer type): wherever the docs say our radii are GenSafeNav's, they say so."""
+    docs = Path(__file__).parents[1] / "docs"
+    claims = [line for name in ("robot.md", "benchmarks.md")
+              for line in (docs / name).read_text().splitlines() if "same radii" in line]
+    assert claims and all("truncat" in line for line in claims)

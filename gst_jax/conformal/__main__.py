@@ -23,7 +23,7 @@ from gst_jax.runs import load_model
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = cli.parser("gst_jax.conformal", __doc__)
+    parser = cli.parser("gst_jax.conformal", __doc__, compilation_cache=True)
     parser.add_argument("model", help="a work directory of `python -m gst_jax.train`, "
                         "SWEEP_DIR:MEMBER, or pretrained:NAME")
     cli.add_data_flags(parser, of_run=True)
