@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import os
+import re
+import subprocess
+import sys
 import warnings
+from pathlib import Path
 from unittest import mock
 
 import jax
@@ -135,7 +140,7 @@ def test_samples_in_chunks_are_the_samples_of_one_vmap():
     key = jax.random.key(3)
     one_at_a_time = gst_jax.make_predict(config, num_samples=K, memory_budget_bytes=1)
     chunked = one_at_a_time(params, key, batch)
-    assert one_at_a_time.chunking(params, key, batch) == Chunking(1, 1, mock.ANY, mock.ANY)
+    assert one_at_a_time.chunking(params, key, batch) == Chunking(1, 1, *[mock.ANY] * 3)
     # Choosing compiled the single vmap first, to measure it: jit's cache holds it.
     whole = one_at_a_time._program(K, None)(params, key, batch, None)
 
@@ -157,6 +162,7 @@ def test_samples_in_chunks_are_the_samples_of_one_vmap():
 
 
 def test_a_prediction_that_cannot_fit_is_refused_in_one_line_before_it_runs(monkeypatch):
+    monkeypatch.setattr(predict_module, "COMPILER_BYTES", 0)     # the compiler fits (below)
     monkeypatch.setattr(predict_module, "available_memory",
                         lambda device: (2 ** 16, "under this process's cgroup memory limit"))
     params = gst_jax.init_params(CONFIG, jax.random.key(0))
@@ -221,3 +227,135 @@ def test_the_memory_available_on_this_machine_is_known():
         pytest.skip("no memory figures on this platform")
     left, source = available
     assert 0 < left and source
+
+
+# --- large crowds: announced, and the compiler's own memory -----------------------------------
+
+def test_a_crowd_above_the_crossover_with_the_exact_model_is_announced_in_one_line(monkeypatch):
+    """Before a large crowd's first call: one warning with XLA's estimate of its memory and
+    time that names the candidate neighbourhood; once per shape. The crossover is lowered to
+    4 people and the time worth a word to none, so that a scene of 5 (8 slots) is "large"."""
+    monkeypatch.setattr(predict_module, "CANDIDATES_PAY_ABOVE", 4)
+    monkeypatch.setattr(predict_module, "LONG_CALL_S", 0.0)
+    params = gst_jax.init_params(CONFIG, jax.random.key(0))
+    predict = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False)
+    batch = gst_jax.make_batch(observations(5))
+    with pytest.warns(UserWarning) as said:
+        jax.block_until_ready(predict(params, jax.random.key(1), batch))
+    assert len(said) == 1
+    assert said[0].filename == __file__                 # pointed at the caller's line
+    assert re.fullmatch(
+        r"predicting 3 samples of a scene of 5 people with the exact model needs about \S+ "
+        r"(s|min) a call on \d+ idle CPU cores? and \d+ [KM]iB \(XLA's estimate\); above 4 people "
+        r"the candidate neighbourhood is faster: candidates=16 \(--candidates 16; "
+        r"docs/MODEL.md 2.4\)", str(said[0].message)), str(said[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jax.block_until_ready(predict(params, jax.random.key(2), batch))     # said once
+
+
+def test_the_crowd_notice_is_for_the_exact_model_above_the_crossover_on_a_cpu():
+    cpu = jax.devices("cpu")[0]
+    cost = predict_module.Estimate(xla_bytes=2 ** 30, bytes_needed=3 * 2 ** 29,
+                    operations=40 * predict_module.CPU_OPERATIONS_PER_CORE_SECOND)
+    above = predict_module.CANDIDATES_PAY_ABOVE + 1
+    line = predict_module.crowd_notice(CONFIG, above, cost, cpu, "a stream step")
+    cores = len(os.sched_getaffinity(0))
+    assert line.startswith(f"a stream step with the exact model needs about {40 / cores:.2g} s "
+                           f"a call on {cores} idle CPU core")
+    assert "and 1.5 GiB (XLA's estimate); above " in line
+    assert "candidates=16 (--candidates 16" in line
+    assert predict_module.crowd_notice(CONFIG, above - 1, cost, cpu, "a step") is None
+    assert predict_module.crowd_notice(CONFIG, above, cost, cpu, "a step",
+                                       slower_than_s=41 / cores) is None
+    with_candidates = gst_jax.ModelConfig(candidates=16)
+    assert predict_module.crowd_notice(with_candidates, above, cost, cpu, "a step") is None
+
+
+def test_the_operation_count_takes_a_loop_s_body_its_length_times():
+    """XLA's cost analysis counts a loop's body once; the time estimate must not: a scan of
+    5 matrix products (4 x 3 by 3 x 2: 48 operations each, 2 per multiply-add) and a sine of
+    their result (8) counts 5 x 56."""
+    y = np.ones((3, 2), np.float32)
+
+    def body(carry, x):
+        return carry, jax.numpy.sin(x @ y)
+
+    def scanned(xs):
+        return jax.lax.scan(body, 0.0, xs)[1]
+
+    jaxpr = jax.make_jaxpr(scanned)(np.ones((5, 4, 3), np.float32)).jaxpr
+    assert predict_module.operation_count(jaxpr) == 5 * (48 + 8)
+
+
+def test_a_program_compiled_for_a_stream_is_checked_announced_and_not_compiled_again(
+        monkeypatch):
+    """`compile_checked`, what a stream calls before its step first runs at a capacity."""
+    double = jax.jit(lambda x: 2 * x)
+    x = np.ones((4, 3), np.float32)
+    above = predict_module.CANDIDATES_PAY_ABOVE + 1
+    with count_compiles() as compiled:
+        with pytest.warns(UserWarning, match=r"^a stream step over 320 slots with the exact "
+                                             r"model needs .* candidates=16"):
+            cost = predict_module.compile_checked(double, (x,), CONFIG, above,
+                                                  "a stream step over 320 slots",
+                                                  slower_than_s=0.0)
+        double(x).block_until_ready()
+    assert compiled.count == 1                          # the call ran what was checked
+    assert cost.operations == 12 and cost.bytes_needed > 0
+    monkeypatch.setattr(predict_module, "available_memory",
+                        lambda device: (2 ** 20, "under this process's cgroup memory limit "
+                                                 "of 1.0 GiB"))
+    with count_compiles() as compiled:
+        with pytest.raises(DataError, match=(
+                r"^a stream step: XLA's compiler needs about 256 MiB more than this process "
+                r"holds, and 1 MiB is left \(under this process's cgroup memory limit of "
+                r"1.0 GiB\); raise the limit$")):
+            predict_module.compile_checked(jax.jit(lambda x: 3 * x), (x,), CONFIG, 8,
+                                           "a stream step")
+    assert compiled.count == 0                          # refused before compiling
+
+
+# The child: load a model and a batch (nothing left to compile but the prediction), leave it
+# 32 MiB of address space above what it holds, and predict as a command would (the library's
+# `DataError` printed as `gst_jax.cli.run` prints it) or run `python -m gst_jax.predict`.
+UNDER_A_LIMIT = """
+import resource, sys
+import jax, numpy as np, gst_jax
+from gst_jax.errors import DataError
+from gst_jax.predict.__main__ import main
+config, params = gst_jax.load_pretrained("eth_d")
+xy = np.cumsum(np.full((1, 8, 5, 2), 0.4), axis=1) + np.arange(5.0)[:, None]
+batch, key = gst_jax.make_batch(xy), jax.block_until_ready(jax.random.key(1))
+predict = gst_jax.make_predict(config, num_samples=3, with_graph=False)
+held = next(int(line.split()[1]) for line in open("/proc/self/status")
+            if line.startswith("VmSize:")) * 1024
+resource.setrlimit(resource.RLIMIT_AS, (held + 32 * 2 ** 20, resource.RLIM_INFINITY))
+if sys.argv[1] == "command":
+    main(["pretrained:eth_d", "--out", "never-written.ndjson"])
+try:
+    predict(params, key, batch)
+except DataError as error:
+    raise SystemExit(f"error: {error}")
+"""
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="needs Linux's /proc")
+@pytest.mark.parametrize("caller, work", [
+    ("library", "predicting 3 samples of a scene of 5 people"),
+    ("command", "python -m gst_jax.predict")])
+def test_an_address_space_limit_too_small_for_the_compiler_is_refused_in_one_line(
+        caller, work, tmp_path):
+    """Under `ulimit -v` with less left than XLA's compiler takes, predict used to die inside
+    it (std::bad_alloc, "LLVM ERROR: pthread_create failed", a segfault) without a word."""
+    result = subprocess.run([sys.executable, "-c", UNDER_A_LIMIT, caller], capture_output=True,
+                            text=True, timeout=600, cwd=tmp_path,
+                            env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])})
+    assert result.returncode == 1, result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert re.fullmatch(
+        rf"error: {re.escape(work)}: XLA's compiler needs about 256 MiB more than this process "
+        r"holds, and \d+ MiB is left \(under this process's address-space limit of \d+\.\d "
+        r"GiB, ulimit -v\); raise the limit", lines[-1]), result.stderr
+    assert not (tmp_path / "never-written.ndjson").exists()

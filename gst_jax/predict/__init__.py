@@ -14,13 +14,25 @@ the memory this process may still take; a program over either computes its sampl
 chunks (`lax.map`, a vmap within each) and the observed steps one at a time, with the same
 keys and so the same samples; one that cannot fit even one sample at a time is refused in
 one line (`DataError`) before anything is allocated (docs/scaling.md).
+
+Before each compile, the memory left (the least of MemAvailable, the cgroup limit's headroom
+and the address-space limit's) must hold XLA's compiler too (`COMPILER_BYTES`); a process
+that cannot is refused in one line instead of dying inside LLVM. On a CPU, a crowd above
+`CANDIDATES_PAY_ABOVE` people with the exact model whose call is expected to take a second
+or more is announced in one line (a warning) before its first call, with its expected time
+(`operation_count`) and XLA's estimate of its memory, naming the option that makes it
+cheap, candidates= (`crowd_notice`). `compile_checked` does all this for any jitted program
+over a crowd (a stream's step).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
+import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import flax
 import jax
@@ -46,6 +58,31 @@ CHUNKING_SLACK = 0.95
 CGROUP_ROOT = Path("/sys/fs/cgroup")
 # cgroup v1 writes "no limit" as a huge number (PAGE_COUNTER_MAX pages).
 NO_LIMIT = 2 ** 60
+# What XLA's compiler itself takes beyond the process's memory while it compiles a predict
+# program (its threads, LLVM's code sections); a process with less left died inside it
+# (`std::bad_alloc`, "LLVM ERROR: Unable to allocate section memory!" or "pthread_create
+# failed", a segfault), and with 32 MiB left even loading a compiled program from the
+# persistent cache did. Measured as the address space that compiling and running a first
+# predict (N = 8, K = 3) needed above the process's size (2-core VM, jaxlib 0.10.2, a limit
+# set with setrlimit): 128-160 MiB at XLA's default optimisation level, 192-256 MiB at
+# --xla_backend_optimization_level=0 (the test suite's); N = 300, K = 20 compiled its single
+# vmap with 256 MiB left.
+COMPILER_BYTES = 256 * 2 ** 20
+# The candidate neighbourhood a large crowd is pointed to (docs/MODEL.md 2.4), and the crowd
+# above which it predicts faster than the exact model: the paper's model, one sample, median
+# call (2-core VM loaded by other work, CPU time): N = 24 14.7 / 11.2 ms, 32 25.5 / 18.7 ms
+# (the wall-clock medians tie there), 48 70.7 / 24.0 ms, 64 163 / 41 ms, 300 15.9 / 0.29 s
+# (docs/benchmarks.md, benchmarks/bench_neighbourhood.py).
+SUGGESTED_CANDIDATES = 16
+CANDIDATES_PAY_ABOVE = 32
+# A call expected to take this long or more is worth a word (a choice, not a measurement;
+# a robot's stream passes its model's step).
+LONG_CALL_S = 1.0
+# A predict program's arithmetic (`operation_count`) per second of one CPU core: 12.7-18.7 G
+# per second of CPU time on the same VM over N = 16-300, exact and with 16 candidates; 12.7 G
+# for the exact model at N = 300 (bench_neighbourhood.py's g_operations_per_cpu_s). The
+# slowest, so that a call's expected time errs long.
+CPU_OPERATIONS_PER_CORE_SECOND = 12.7e9
 
 
 @flax.struct.dataclass
@@ -72,6 +109,14 @@ class Prediction:
     predicted_mask: jax.Array
 
 
+class Estimate(NamedTuple):
+    """What a compiled program needs: `Chunking`'s xla_bytes, bytes_needed and operations."""
+
+    xla_bytes: int | None
+    bytes_needed: int | None
+    operations: float
+
+
 @dataclasses.dataclass(frozen=True)
 class Chunking:
     """How the program of one batch shape computes, and what XLA says it needs.
@@ -81,12 +126,14 @@ class Chunking:
     xla_bytes: temporaries + arguments + outputs of the compiled program, over every device
       of a CPU (they share its memory); None where XLA does not say.
     bytes_needed: what a call takes: xla_bytes, times CPU_RUNTIME_MARGIN on a CPU.
+    operations: the program's arithmetic (`operation_count`), what its time grows with.
     """
 
     samples_at_once: int
     observed_steps_at_once: int | None
     xla_bytes: int | None
     bytes_needed: int | None
+    operations: float = 0.0
 
 
 def make_predict(config: ModelConfig, num_samples: int = 20, *, with_graph: bool = True,
@@ -132,10 +179,17 @@ class Predictor:
 
     def chunking(self, params, key: jax.Array, batch: SceneBatch,
                  controls: Controls | None = None) -> Chunking:
-        """The chunking of this batch's shape, chosen (and compiled) on its first call."""
+        """The chunking of this batch's shape, chosen (and compiled) on its first call, which
+        announces a large crowd (`crowd_notice`)."""
         signature = (tuple(np.shape(leaf) for leaf in jax.tree.leaves(batch)), controls is None)
         if signature not in self._chunkings:
-            self._chunkings[signature] = self._choose((params, key, batch, controls))
+            chosen = self._choose((params, key, batch, controls))
+            self._chunkings[signature] = chosen
+            what = (f"predicting {self.num_samples} samples of "
+                    f"{_scenes(batch, self.config.obs_len)}")
+            if notice := crowd_notice(self.config, batch.positions.shape[2], chosen,
+                                      _devices(batch.positions)[0], what):
+                warnings.warn(notice, stacklevel=3)
         return self._chunkings[signature]
 
     def _choose(self, args) -> Chunking:
@@ -169,19 +223,16 @@ class Predictor:
     def _measure(self, samples_at_once: int, observed_steps_at_once: int | None,
                  args) -> Chunking:
         """Compile a chunking's program for these arguments (jit's cache keeps it: the call
-        that follows does not compile again) and read XLA's estimate of its memory."""
+        that follows does not compile again) and read XLA's estimate of it; refused first
+        where the memory left cannot hold the compiler."""
         program = self._program(samples_at_once, observed_steps_at_once)
-        stats = program.lower(*args).compile().memory_analysis()
-        if stats is None:
-            return Chunking(samples_at_once, observed_steps_at_once, None, None)
-        positions = args[2].positions
-        devices = _devices(positions)
-        on_cpu = devices[0].platform == "cpu"
-        # Host devices of one CPU (XLA_FLAGS device count) share its memory.
-        xla_bytes = (len(devices) if on_cpu else 1) * (
-            stats.temp_size_in_bytes + stats.argument_size_in_bytes + stats.output_size_in_bytes)
-        return Chunking(samples_at_once, observed_steps_at_once, xla_bytes,
-                        int(xla_bytes * CPU_RUNTIME_MARGIN) if on_cpu else xla_bytes)
+        batch = args[2]
+        devices = _devices(batch.positions)
+        check_compiler_room(f"predicting {self.num_samples} samples of "
+                            f"{_scenes(batch, self.config.obs_len)}", devices[0])
+        traced = program.trace(*args)
+        return Chunking(samples_at_once, observed_steps_at_once,
+                        *estimate(traced.lower().compile(), traced.jaxpr, devices))
 
     def _program(self, samples_at_once: int, observed_steps_at_once: int | None):
         chunking = (samples_at_once, observed_steps_at_once)
@@ -239,16 +290,145 @@ def _devices(array) -> list[jax.Device]:
     return sorted(devices, key=lambda d: d.id) if devices else jax.devices()[:1]
 
 
+def _scenes(batch: SceneBatch, obs_len: int) -> str:
+    """"a scene of 300 people", "4 scenes of up to 30 people": who is observed in `batch`."""
+    seen = np.asarray(batch.position_mask)[:, :obs_len].any(axis=1).sum(axis=-1)
+    people = int(seen.max()) if seen.size else 0
+    return (f"a scene of {people} people" if len(seen) == 1
+            else f"{len(seen)} scenes of up to {people} people")
+
+
 def _refusal(num_samples: int, batch: SceneBatch, obs_len: int, needed: int, available: int,
              source: str) -> str:
     """The one line that refuses a prediction that cannot fit."""
-    seen = np.asarray(batch.position_mask)[:, :obs_len].any(axis=1).sum(axis=-1)
-    people = int(seen.max()) if seen.size else 0
-    scenes = (f"a scene of {people} people" if len(seen) == 1
-              else f"{len(seen)} scenes of up to {people} people")
-    return (f"predicting {num_samples} samples of {scenes} needs {_size(needed)} at least "
-            f"(one sample at a time); {_size(available)} is available ({source}); use fewer "
-            "people per scene or more memory")
+    return (f"predicting {num_samples} samples of {_scenes(batch, obs_len)} needs "
+            f"{_size(needed)} at least (one sample at a time); {_size(available)} is available "
+            f"({source}); use fewer people per scene or more memory")
+
+
+def estimate(compiled, closed_jaxpr, devices: list[jax.Device]) -> Estimate:
+    """What a program needs on `devices`: XLA's estimate of the memory of its compiled form
+    (None where XLA does not say) and the arithmetic of its (closed) jaxpr."""
+    operations = operation_count(closed_jaxpr.jaxpr)
+    stats = compiled.memory_analysis()
+    if stats is None:
+        return Estimate(None, None, operations)
+    on_cpu = devices[0].platform == "cpu"
+    # Host devices of one CPU (XLA_FLAGS device count) share its memory.
+    xla_bytes = (len(devices) if on_cpu else 1) * (
+        stats.temp_size_in_bytes + stats.argument_size_in_bytes + stats.output_size_in_bytes)
+    return Estimate(xla_bytes, int(xla_bytes * CPU_RUNTIME_MARGIN) if on_cpu else xla_bytes,
+                    operations)
+
+
+def operation_count(jaxpr) -> float:
+    """The arithmetic of a jaxpr (`jax.core.Jaxpr`): 2 per multiply-add of a matrix product,
+    one per element read or written by any other operation (the larger); a scan's body times
+    its length, a while loop's once, the larger branch of a cond. (XLA's own count,
+    `cost_analysis`, takes every loop's body once, and predict's are where its time goes:
+    the rollout's scan over the predicted steps, `lax.map` over chunks of samples.)"""
+    total = 0.0
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name == "dot_general":
+            (contracting, _), _ = eqn.params["dimension_numbers"]
+            lhs = eqn.invars[0].aval.shape
+            total += 2.0 * _elements(eqn.outvars[0].aval) * math.prod(lhs[a] for a in contracting)
+            continue
+        inner = [getattr(sub, "jaxpr", sub) for param in eqn.params.values()
+                 for sub in (param if isinstance(param, (list, tuple)) else [param])
+                 if hasattr(getattr(sub, "jaxpr", sub), "eqns")]
+        if not inner:
+            total += max(_elements(v.aval) for v in (*eqn.invars, *eqn.outvars))
+            continue
+        counts = [operation_count(sub) for sub in inner]
+        if name == "cond":
+            total += max(counts)
+        else:
+            total += (eqn.params["length"] if name == "scan" else 1) * sum(counts)
+    return total
+
+
+def _elements(aval) -> int:
+    return math.prod(getattr(aval, "shape", ()))
+
+
+def check_compiler_room(what: str, device: jax.Device | None = None) -> None:
+    """Refuse in one line (`DataError`) where the memory this process may still take on
+    `device` (the default device) cannot hold XLA's compiler (`COMPILER_BYTES`): compiling
+    there dies inside LLVM without a word. `what`: the work, for the message ("predicting 20
+    samples of ...")."""
+    available = available_memory(device or jax.devices()[0])
+    if available is not None and available[0] < COMPILER_BYTES:
+        left, source = available
+        raise DataError(f"{what}: XLA's compiler needs about {_size(COMPILER_BYTES)} more "
+                        f"than this process holds, and {_size(left)} is left ({source}); "
+                        "raise the limit")
+
+
+def crowd_notice(config: ModelConfig, slots: int, cost: Estimate | Chunking,
+                 device: jax.Device, what: str, slower_than_s: float | None = None
+                 ) -> str | None:
+    """The one line announcing a large crowd, or None: on a CPU, the exact model
+    (`config.candidates` 0) over more than CANDIDATES_PAY_ABOVE people (slots: the program's
+    pedestrian axis) where a call is expected to take `slower_than_s` (default LONG_CALL_S)
+    or more. It gives what a call of the program about to run needs (`cost`: XLA's estimate
+    of its memory; its time, its arithmetic at CPU_OPERATIONS_PER_CORE_SECOND on the cores
+    this process may use, which other work slows) and the option that makes it cheap.
+    `what`: the work ("predicting 20 samples of a scene of 300 people")."""
+    if config.candidates or slots <= CANDIDATES_PAY_ABOVE or device.platform != "cpu":
+        return None
+    cores = _usable_cores()
+    seconds = cost.operations / (CPU_OPERATIONS_PER_CORE_SECOND * cores)
+    if seconds < (LONG_CALL_S if slower_than_s is None else slower_than_s):
+        return None
+    memory = "" if cost.bytes_needed is None else (
+        f" and {_size(cost.bytes_needed)} (XLA's estimate)")
+    return (f"{what} with the exact model needs about {_seconds(seconds)} a call on {cores} "
+            f"idle CPU core{'s' if cores > 1 else ''}{memory}; above "
+            f"{CANDIDATES_PAY_ABOVE} people the candidate neighbourhood is faster: "
+            f"candidates={SUGGESTED_CANDIDATES} (--candidates {SUGGESTED_CANDIDATES}; "
+            "docs/MODEL.md 2.4)")
+
+
+def compile_checked(program, args: tuple, config: ModelConfig, slots: int, what: str,
+                    slower_than_s: float | None = None) -> Estimate:
+    """Before the jitted `program` first runs on `args` over a crowd of `slots` people (a
+    stream's step at a new capacity): refuse in one line where the memory left cannot hold
+    the compiler; compile it (jit's cache keeps it: the call that follows does not compile
+    again); refuse in one line where XLA's estimate of a call exceeds the memory available;
+    warn in one line where the crowd is large for the exact model and a call is expected to
+    take `slower_than_s` or more (`crowd_notice`; a robot's stream: its model's step_s).
+    Returns the estimate. `what` names the work in those lines ("a stream step over 320
+    slots")."""
+    leaves = [leaf for leaf in jax.tree.leaves(args) if hasattr(leaf, "shape")]
+    devices = _devices(leaves[0]) if leaves else jax.devices()[:1]
+    check_compiler_room(what, devices[0])
+    traced = program.trace(*args)
+    cost = estimate(traced.lower().compile(), traced.jaxpr, devices)
+    available = available_memory(devices[0])
+    if available is not None and cost.bytes_needed is not None and (
+            cost.bytes_needed > available[0]):
+        raise DataError(f"{what} needs {_size(cost.bytes_needed)} (XLA's estimate); "
+                        f"{_size(available[0])} is available ({available[1]}); use fewer "
+                        f"people, candidates={SUGGESTED_CANDIDATES} or more memory")
+    if notice := crowd_notice(config, slots, cost, devices[0], what, slower_than_s):
+        warnings.warn(notice, stacklevel=2)
+    return cost
+
+
+def _usable_cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:                                  # not Linux
+        return os.cpu_count() or 1
+
+
+def _seconds(seconds: float) -> str:
+    if seconds >= 120:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds:.2g} s" if seconds < 10 else f"{seconds:.0f} s"
 
 
 def _size(num_bytes: int) -> str:
@@ -274,15 +454,18 @@ def available_memory(device: jax.Device) -> tuple[int, str] | None:
         proc_cgroup = Path("/proc/self/cgroup").read_text()
     except OSError:
         proc_cgroup = ""
-    if (left := cgroup_headroom(proc_cgroup, CGROUP_ROOT)) is not None:
-        candidates.append((left, "under this process's cgroup memory limit"))
-    if (left := _address_space_left()) is not None:
-        candidates.append((left, "under this process's address-space limit, ulimit -v"))
+    if headrooms := _cgroup_headrooms(proc_cgroup, CGROUP_ROOT):
+        left, limit = min(headrooms)
+        candidates.append((left, f"under this process's cgroup memory limit of {_size(limit)}"))
+    if (address_space := _address_space_left()) is not None:
+        left, limit = address_space
+        candidates.append((left, f"under this process's address-space limit of "
+                                 f"{_size(limit)}, ulimit -v"))
     return min(candidates) if candidates else None
 
 
-def _address_space_left() -> int | None:
-    """What `ulimit -v` (RLIMIT_AS) leaves this process; None without a limit."""
+def _address_space_left() -> tuple[int, int] | None:
+    """(what `ulimit -v` (RLIMIT_AS) leaves this process, the limit); None without one."""
     try:
         import resource                                     # POSIX only
     except ImportError:
@@ -290,13 +473,19 @@ def _address_space_left() -> int | None:
     limit, _ = resource.getrlimit(resource.RLIMIT_AS)
     if limit == resource.RLIM_INFINITY:
         return None
-    return limit - (_read_kib("/proc/self/status", "VmSize:") or 0)
+    return limit - (_read_kib("/proc/self/status", "VmSize:") or 0), limit
 
 
 def cgroup_headroom(proc_cgroup: str, root: Path) -> int | None:
     """What this process's memory cgroups (`/proc/self/cgroup` text, mounted at `root`) and
     their parents still admit: the least of limit - (usage - inactive file pages), which the
     kernel reclaims before it kills; None where no limit is set. cgroup v2 and v1."""
+    headrooms = _cgroup_headrooms(proc_cgroup, root)
+    return min(headrooms)[0] if headrooms else None
+
+
+def _cgroup_headrooms(proc_cgroup: str, root: Path) -> list[tuple[int, int]]:
+    """(headroom, limit) of every limited memory cgroup of this process and its parents."""
     headroom = []
     for line in proc_cgroup.splitlines():
         if line.count(":") < 2:
@@ -313,8 +502,8 @@ def cgroup_headroom(proc_cgroup: str, root: Path) -> int | None:
         for depth in range(len(parts), -1, -1):
             limit, usage, inactive = _cgroup_files(directory.joinpath(*parts[:depth]), files)
             if limit is not None and usage is not None and limit < NO_LIMIT:
-                headroom.append(limit - usage + (inactive or 0))
-    return min(headroom) if headroom else None
+                headroom.append((limit - usage + (inactive or 0), limit))
+    return headroom
 
 
 def _cgroup_files(directory: Path, files: tuple[str, str, str]):

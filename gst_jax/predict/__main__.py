@@ -7,7 +7,9 @@ predicted pedestrian (rows with prediction_number and scene_id), in metres and t
 frame ids. `python -m gst_jax.evaluate --predictions FILE --data PATH` scores such a file; with
 the same seed it scores exactly as `python -m gst_jax.evaluate MODEL` does. A crowd too
 large for `--memory-budget` samples in chunks; one that cannot fit in the memory available,
-even one sample at a time, is refused in one line before anything is allocated.
+even one sample at a time, is refused in one line before anything is allocated, and so is a
+process whose memory limit leaves too little for XLA's compiler. A crowd large enough for
+`--candidates` to pay is announced with its expected time and memory before its first batch.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from pathlib import Path
 
 from gst_jax import cli
 from gst_jax.evaluation import write_run_predictions
-from gst_jax.predict import DEFAULT_MEMORY_BUDGET
+from gst_jax.predict import DEFAULT_MEMORY_BUDGET, check_compiler_room
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 
@@ -35,6 +37,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def predict(args) -> None:
+    check_compiler_room("python -m gst_jax.predict")         # before anything compiles
     run = load_model(args.model, args.epoch).with_candidates(args.candidates)
     data_config = cli.data_config(args, base=run.data_config)
     rows = write_run_predictions(run, data_config, args.split, Path(args.out),
