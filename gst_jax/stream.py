@@ -48,7 +48,7 @@ from gst_jax.compiles import use_persistent_cache
 from gst_jax.data import SceneBatch, bucket_size, node_mask_from_positions
 from gst_jax.data.batching import LARGEST_COORDINATE
 from gst_jax.errors import DataError
-from gst_jax.predict import make_predict
+from gst_jax.predict import compile_checked, make_predict
 
 # The id of a free slot; track ids are 0 or more (int32).
 FREE = -1
@@ -423,6 +423,7 @@ class Stream:
         self._fresh_regions = None if regions is None or regions.pooled else _host_tree(
             regions.init(1, config.pred_len))
         self._step = _jitted_step(self.model, regions, self.max_speed)
+        self._checked: set[int] = set()      # capacities whose step `compile_checked` saw
 
     def step(self, ids, positions, robot_xy=None, *, time: float | None = None
              ) -> StreamOutput:
@@ -537,8 +538,15 @@ class Stream:
         frame = Frame(np.pad(ids, (0, width - len(ids)), constant_values=FREE),
                       np.pad(positions, [(0, width - len(ids)), (0, 0)]).astype(np.float32),
                       np.pad(lost, (0, width - len(lost)), constant_values=FREE))
-        state, *outputs = self._step(self.params, self.state, frame, self.key,
-                                     np.int32(self.frames))
+        args = (self.params, self.state, frame, self.key, np.int32(self.frames))
+        if width not in self._checked and self.model.convention == "gst":
+            # Before a capacity's first step: refuse where memory cannot hold its compiling
+            # or its call, say so where the crowd is large for the exact model (issue 78).
+            compile_checked(self._step, args, self.model.config, width,
+                            f"a stream step over {width} slots",
+                            slower_than_s=self.model.config.step_s)
+            self._checked.add(width)
+        state, *outputs = self._step(*args)
         return (state, *_host_tree(outputs))
 
     def _grown(self, capacity: int) -> StreamState:

@@ -21,6 +21,7 @@ from gst_jax.compiles import count_compiles
 from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
 from gst_jax.errors import DataError
+from gst_jax import predict as predict_module
 from gst_jax.predict import make_predict
 from gst_jax.runs import load_model
 
@@ -452,3 +453,27 @@ def test_the_docs_say_that_gensafenavs_released_file_gives_other_radii():
     claims = [line for name in ("robot.md", "benchmarks.md")
               for line in (docs / name).read_text().splitlines() if "same radii" in line]
     assert claims and all("truncat" in line for line in claims)
+
+
+def test_each_capacitys_step_is_checked_before_it_first_runs(sim_run, monkeypatch):
+    """Before a capacity's first step the stream hands it to `predict.compile_checked`, which
+    refuses in one line what memory cannot hold and announces a crowd that is large for the
+    exact model (issue 78); a later step of that capacity is not checked again."""
+    seen = []
+    check = stream.compile_checked
+
+    def recorded(program, args, config, slots, what, **options):
+        seen.append(what)
+        return check(program, args, config, slots, what, **options)
+
+    monkeypatch.setattr(stream, "compile_checked", recorded)
+    player = stream.Stream(sim_run, max_speed=None)
+    xy = walkers(12, 3)
+    for t, people in enumerate((4, 12, 12)):
+        player.step(np.arange(people), xy[t, :people])
+    assert seen == ["a stream step over 8 slots", "a stream step over 16 slots"]
+    # Where the memory left cannot hold the compiler, the next new capacity is refused.
+    monkeypatch.setattr(predict_module, "available_memory",
+                        lambda device: (2 ** 20, "under a test's limit"))
+    with pytest.raises(DataError, match=r"^a stream step over 24 slots: XLA's compiler needs"):
+        player.step(np.arange(20), walkers(20, 1)[0])
