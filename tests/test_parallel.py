@@ -178,7 +178,8 @@ def test_two_processes_joined_by_jax_distributed_train_as_one(tmp_path):
 
 
 # Elementwise and reduction ops that jaxlib 0.10's XLA:CPU gives YNNPACK on an AMD EPYC: one
-# such fusion segfaulted the 4-device sweep above (gst_jax/__init__.py).
+# such fusion segfaulted the 4-device sweep above (gst_jax/__init__.py). On a CPU that gives
+# YNNPACK none of them the probe counts 0 either way.
 YNNPACK_PROBE = textwrap.dedent("""
     import os, sys
     import jax, jax.numpy as jnp
@@ -202,13 +203,18 @@ def _ynnpack_fusions(*, importing: str, xla_flags: str) -> tuple[int, str]:
     return int(output[0]), output[1]
 
 
-def test_importing_gst_jax_keeps_ynnpack_to_matrix_products_unless_told_otherwise():
-    # XLA_FLAGS as the tests have it, less the YNNPACK setting that importing gst_jax added.
+def test_importing_gst_jax_keeps_ynnpack_to_matrix_products_where_host_devices_are_forced():
+    # XLA_FLAGS as the tests have it, less the YNNPACK setting and the device count.
     flags = " ".join(flag for flag in os.environ.get("XLA_FLAGS", "").split()
-                     if "ynn_fusion_type" not in flag)
-    fusions, set_flags = _ynnpack_fusions(importing="gst_jax", xla_flags=flags)
-    assert fusions == 0 and set_flags.endswith("--xla_cpu_experimental_ynn_fusion_type=dot")
-    # A user's own setting wins (where this CPU gets any YNNPACK fusion, it gets it back).
-    users = f"{flags} --xla_cpu_experimental_ynn_fusion_type=eltwise,reduce"
+                     if "ynn_fusion_type" not in flag and "device_count" not in flag)
+    everything, _ = _ynnpack_fusions(importing="jax alone", xla_flags=flags)
+    # One device: gst_jax leaves XLA's fusions alone.
+    assert _ynnpack_fusions(importing="gst_jax", xla_flags=flags) == (everything, flags)
+    # Four forced host devices (where the segfault was seen): matrix products only.
+    four = f"{flags} --xla_force_host_platform_device_count=4"
+    fusions, set_flags = _ynnpack_fusions(importing="gst_jax", xla_flags=four)
+    assert fusions == 0 and set_flags == f"{four} --xla_cpu_experimental_ynn_fusion_type=dot"
+    # A user's own setting wins.
+    users = f"{four} --xla_cpu_experimental_ynn_fusion_type=eltwise,reduce"
     assert _ynnpack_fusions(importing="gst_jax", xla_flags=users) == (
         _ynnpack_fusions(importing="jax alone", xla_flags=users)[0], users)
