@@ -7,7 +7,11 @@
     <workdir>/selected/<epoch>/           a fine-tuning's model: the epoch (0: the model it
                                           started from) of the best validation AOE
     <workdir>/lock                        held by the process that trains in it
-    <workdir>/metrics.jsonl               one JSON line per epoch (with the code that trained it)
+    <workdir>/metrics.jsonl               one JSON line per epoch: what the training computed
+                                          (loss, schedule, validation, the code that trained it);
+                                          the same command on the same machine writes it anew
+                                          byte for byte
+    <workdir>/timings.jsonl               one JSON line per epoch: how long it took (TIMINGS)
     <workdir>/summary.json                the training's summary, once it has finished
     <workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json, .md    evaluations
     <workdir>/figures/                    figures of `python -m gst_jax.plot`
@@ -38,6 +42,9 @@ from gst_jax.model.heads import head
 
 # Where commands put work directories unless told (--workdir), relative to the current folder.
 RUNS = Path("runs")
+# The fields of an epoch's record that measure the machine, not the training: kept out of
+# metrics.jsonl in timings.jsonl, so that two runs of one command leave identical metrics.
+TIMINGS = ("epoch_time_s", "scenes_per_s", "compiles", "compile_time_s", "finished_at")
 
 
 @functools.cache
@@ -160,6 +167,10 @@ class WorkDir:
         return self.path / "metrics.jsonl"
 
     @property
+    def timings_path(self) -> Path:
+        return self.path / "timings.jsonl"
+
+    @property
     def figures(self) -> Path:
         return self.path / "figures"
 
@@ -238,33 +249,30 @@ class WorkDir:
                 f.truncate(0)
 
     def read_metrics(self) -> list[dict]:
-        """The per-epoch records of metrics.jsonl, in order ([] before the first epoch). A
-        line cut short (a full disk) is skipped with a warning."""
-        if not self.metrics_path.exists():
-            return []
-        records = []
-        for number, line in enumerate(self.metrics_path.read_text().splitlines(), start=1):
-            if not line.strip():
-                continue
-            try:
-                records.append(json.loads(line))
-            except json.JSONDecodeError:
-                warnings.warn(f"{self.metrics_path}:{number}: skipped a line that is not "
-                              "complete JSON (cut short by a full disk or a crash?)",
-                              stacklevel=2)
-        return records
+        """The per-epoch records, in order ([] before the first epoch): each line of
+        metrics.jsonl with the same epoch's timings.jsonl line merged in (work directories
+        written before the split hold both in metrics.jsonl). A line cut short (a full disk)
+        is skipped with a warning."""
+        timings = {record.get("epoch"): record for record in _read_lines(self.timings_path)}
+        return [{**record, **{k: v for k, v in timings.get(record.get("epoch"), {}).items()
+                              if k != "epoch"}}
+                for record in _read_lines(self.metrics_path)]
 
     def append_metrics(self, record: dict) -> None:
         if not self.writes:
             return
-        write_text(self.metrics_path, json.dumps(record) + "\n", mode="a")
+        computed, timing = _split_timings(record)
+        write_text(self.metrics_path, json.dumps(computed) + "\n", mode="a")
+        write_text(self.timings_path, json.dumps(timing) + "\n", mode="a")
 
     def write_metrics(self, records: list[dict]) -> None:
-        """Replace metrics.jsonl by `records` (a resume: those of its checkpoint, which drop
-        what a killed run wrote after it and restore what it did not get to write)."""
+        """Replace metrics.jsonl and timings.jsonl by `records` (a resume: those of its
+        checkpoint, which drop what a killed run wrote after it and restore what it did not
+        get to write)."""
         if self.writes:
-            lines = "".join(json.dumps(r) + "\n" for r in records)
-            write_atomically(self.metrics_path, lines)
+            split = [_split_timings(r) for r in records]
+            write_atomically(self.metrics_path, "".join(json.dumps(c) + "\n" for c, _ in split))
+            write_atomically(self.timings_path, "".join(json.dumps(t) + "\n" for _, t in split))
 
     def code_versions(self) -> list[str]:
         """The code versions that trained the run's epochs, in order of first use."""
@@ -309,3 +317,27 @@ class WorkDir:
     def results_path(self, suffix: str) -> Path:
         """A sweep's results.<suffix>."""
         return self.path / f"results.{suffix}"
+
+
+def _split_timings(record: dict) -> tuple[dict, dict]:
+    """An epoch's record -> (what metrics.jsonl keeps, its timings.jsonl line)."""
+    computed = {k: v for k, v in record.items() if k not in TIMINGS}
+    timing = {"epoch": record.get("epoch"), **{k: record[k] for k in TIMINGS if k in record}}
+    return computed, timing
+
+
+def _read_lines(path: Path) -> list[dict]:
+    """The JSON lines of a file ([] where it does not exist), a line cut short skipped with a
+    warning."""
+    if not path.exists():
+        return []
+    records = []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            warnings.warn(f"{path}:{number}: skipped a line that is not complete JSON (cut "
+                          "short by a full disk or a crash?)", stacklevel=3)
+    return records
