@@ -39,7 +39,8 @@ def train(args) -> None:
     if args.json:
         print(json.dumps(summary, indent=2))
         return
-    print(f"trained {summary['epochs']} epochs on {summary['train_windows']} windows in "
+    done = "already trained" if summary.get("already_finished") else "trained"
+    print(f"{done} {summary['epochs']} epochs on {summary['train_windows']} windows in "
           f"{summary['wall_time_s']:.0f} s; final loss {summary['final_loss']:.4f}; "
           f"evaluate with: python -m gst_jax.evaluate {workdir}")
     if "fine_tuning" in summary:

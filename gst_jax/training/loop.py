@@ -182,7 +182,7 @@ def _os_error_reason(error: BaseException) -> str | None:
     return None
 
 
-def _resume(training: Training, saves: _Saves, config: dict,
+def _resume(training: Training, saves: _Saves, config: dict, epochs: int,
             progress: Progress) -> tuple[TrainState, list, int, _EpochSoFar | None]:
     """(state, records, epoch to start, what that epoch has done) from the newer of the
     newest intact checkpoint and an interrupted epoch's; a fresh state where there is none."""
@@ -212,7 +212,11 @@ def _resume(training: Training, saves: _Saves, config: dict,
         saves.noted(None)
         return training.init_state(), [], 1, None
     inside = so_far is not None and so_far.steps_done > 0       # saved: "epoch 3 at step 7"
-    progress.line(f"resuming {saves.workdir.path} {'from' if inside else 'after'} {saves.saved}")
+    if last_epoch >= epochs and not inside:
+        progress.line(f"already finished: {saves.workdir.path} holds all {epochs} epochs")
+    else:
+        progress.line(f"resuming {saves.workdir.path} {'from' if inside else 'after'} "
+                      f"{saves.saved}")
     return state, records, last_epoch + 1, so_far
 
 
@@ -236,7 +240,8 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     """
     progress = progress or Progress()
     with stops_noted(), contextlib.closing(_Saves(workdir, config)) as saves:
-        state, records, start_epoch, so_far = _resume(training, saves, config, progress)
+        state, records, start_epoch, so_far = _resume(training, saves, config,
+                                                      train_config.epochs, progress)
         # One line per epoch up to the checkpoint, each saved with it: what a killed run wrote
         # after the checkpoint goes, what it did not get to write comes back.
         saves.write_metrics(records)
@@ -328,6 +333,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
             progress.line(_format_record(record))
         if saves.interrupted.latest_epoch is not None:     # the run ended after it
             saves.interrupted.discard()
+    workdir.tidy()
     return state, records
 
 
@@ -389,6 +395,13 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     start = time.perf_counter()
     with workdir.lock():
         workdir.prepare(config)
+        finished = workdir.read_summary()
+        if finished is not None and same_run(finished["config"], config):
+            workdir.tidy()                  # made before finished trainings tidied up
+            (progress or Progress()).line(
+                f"already finished: {workdir.path} holds all {train_config.epochs} epochs; "
+                f"its summary is {workdir.path / 'summary.json'}")
+            return {**finished, "already_finished": True}
         if selection is not None:
             selection.start(init_state)
         state, records = train_epochs(
