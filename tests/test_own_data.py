@@ -20,7 +20,7 @@ from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_model, load_run
 from gst_jax.train import format_fine_tuning
 from gst_jax.training.loop import fit
-from gst_jax.training.state import hparams_for_epoch, step_key
+from gst_jax.training.state import TrainState, hparams_for_epoch, step_key
 from gst_jax.training.step import make_train_step
 
 SAMPLE = Path(__file__).parents[1] / "data" / "samples" / "crowd_10hz.txt"
@@ -155,6 +155,38 @@ def test_fine_tuning_selects_its_epoch_on_validation_and_reports_beside_the_star
     assert test["start"] == {"aoe": start["aoe"], "foe": start["foe"]}
     assert test["tuned"] == {"aoe": tuned["aoe"], "foe": tuned["foe"]}
     assert test["constant_velocity"] == {"aoe": start["cv_aoe"], "foe": start["cv_foe"]}
+
+
+def test_a_fine_tuning_reports_the_starting_models_validation_aoe_beside_the_kept_ones(
+        tmp_path, monkeypatch):
+    """What docs/own-data.md tells the user to compare: the kept epoch's validation AOE and
+    the starting model's, kept with the selection across epochs (scores stand in for the
+    evaluations: nothing compiles)."""
+    from gst_jax.training import loop
+
+    data_config = DataConfig(scene="crowd_10hz", data=str(SAMPLE), fps=10, scale=0.01,
+                             protocol="paper-val")
+    train_config = dataclasses.replace(TINY, init="pretrained:hotel_d")
+    selection = loop._Selection(ModelConfig(), data_config, train_config, WorkDir(tmp_path),
+                                {"run": "stand-in"}, None)
+    val_aoe = {"start": 0.162, "epoch 1": 0.170, "epoch 2": 0.149, "epoch 3": 0.155}
+    scoring = iter(val_aoe.values())
+    monkeypatch.setattr(selection, "_score", lambda params, window_set, key: {
+        "aoe": next(scoring, 0.3), "foe": 0.5, "cv_aoe": 0.2, "cv_foe": 0.4})
+    def state(epoch: int) -> TrainState:
+        return TrainState(params={"w": np.full(2, epoch, np.float32)}, opt_state={},
+                          step=np.int32(epoch))
+
+    selection.start(lambda: state(0))
+    for epoch in (1, 2, 3):
+        selection.after_epoch(epoch, state(epoch))
+    source = dataclasses.replace(load_model("pretrained:hotel_d"), params=state(0).params)
+    report = selection.report(source, state(3), data_config)
+    assert (report["selected_epoch"], report["val_aoe"]) == (2, 0.149)
+    assert report["start_val_aoe"] == 0.162
+    assert format_fine_tuning(report).splitlines()[0] == (
+        "kept epoch 2 on validation AOE (0.149 m against 0.162 m for the starting model "
+        f"pretrained:hotel_d, {report['val_windows']} windows)")
 
 
 # --- trackers' CSV files: a header, --columns ----------------------------------------------

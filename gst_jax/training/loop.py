@@ -423,9 +423,9 @@ SELECTION_SAMPLES = 20
 
 class _Selection:
     """A fine-tuning's model: the epoch, the starting model's 0 included, with the lowest
-    validation AOE, kept in <workdir>/selected/ (what `load_model` then reads). Every epoch is
-    scored with the same draws (one key), so that epochs differ by their parameters only; the
-    test split is never looked at to choose."""
+    validation AOE, kept in <workdir>/selected/ (what `load_model` then reads) with its score
+    and the starting model's. Every epoch is scored with the same draws (one key), so that
+    epochs differ by their parameters only; the test split is never looked at to choose."""
 
     def __init__(self, model_config: ModelConfig, data_config: DataConfig,
                  train_config: TrainConfig, workdir: WorkDir, config: dict,
@@ -446,15 +446,19 @@ class _Selection:
         scored = {"epoch": epoch, "val_aoe": result["aoe"], "val_foe": result["foe"]}
         best = self.best()
         if best is None or scored["val_aoe"] < best["val_aoe"]:
+            # The starting model's score (None in a selection made before it was kept).
+            start = best.get("start") if best else {"val_aoe": scored["val_aoe"],
+                                                     "val_foe": scored["val_foe"]}
             with contextlib.closing(self.workdir.selected_checkpointer()) as saved:
                 saved.discard()
-                saved.save(epoch, state, self.config, [], scored)
+                saved.save(epoch, state, self.config, [], {**scored, "start": start})
             best = scored
         return {"val_aoe": scored["val_aoe"], "val_foe": scored["val_foe"],
                 "selected_epoch": best["epoch"]}
 
     def best(self) -> dict | None:
-        """{"epoch", "val_aoe", "val_foe"} of the model kept so far, or None."""
+        """{"epoch", "val_aoe", "val_foe", "start"} of the model kept so far (start: the
+        starting model's {"val_aoe", "val_foe"}), or None."""
         saved = self.workdir.selected_checkpointer(create=False)
         if saved is None:
             return None
@@ -478,6 +482,9 @@ class _Selection:
         report = {"from": source.name, "selected_epoch": best["epoch"],
                   "val_windows": len(self.val_set), "val_aoe": best["val_aoe"],
                   "val_foe": best["val_foe"]}
+        if best.get("start"):
+            report.update(start_val_aoe=best["start"]["val_aoe"],
+                          start_val_foe=best["start"]["val_foe"])
         test_set = data.load_split(data_config, "test", self.model_config.grid)
         if not len(test_set):
             return report
