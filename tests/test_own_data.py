@@ -325,6 +325,45 @@ def test_metres_read_as_centimetres_are_warned_about(tmp_path):
         assert len(data.load_split(config, "train")) == 33
 
 
+def _renumbered_at_2_5hz(path: Path) -> Path:
+    """The sample at 2.5 Hz in metres, its frame ids counting every row: 0, 1, 2, ..."""
+    rows = np.loadtxt(SAMPLE)
+    rows = rows[rows[:, 0] % 4 == 0]
+    path.write_text("".join(f"{int(f) // 4} {int(p)} {float(x) / 100!r} {float(y) / 100!r}\n"
+                            for f, p, x, y in rows))
+    return path
+
+
+def test_a_wrong_fps_is_named_before_a_unit_when_a_frame_rate_explains_the_speeds(tmp_path):
+    """2.5 Hz data read with --fps 25 walk 10x too fast: ft (3.3x) would bring them under the
+    refusal, but --fps 2.5 brings them to a crowd's speed."""
+    path = _renumbered_at_2_5hz(tmp_path / "at_2_5hz.txt")
+    with pytest.raises(DataError, match=rf"^{path}: its people move at a median 10\.5 m/s "
+                                        r"\(read in m, frame ids at 25 per second\), which no "
+                                        r"pedestrian does; at --fps 2\.5 it would be 1 m/s: "
+                                        r"check --fps \(frame ids per second: a wrong rate "
+                                        r"scales every speed\); in ft it would be 3\.2 m/s "
+                                        r"\(--units ft\)$"):
+        data.load_split(DataConfig(scene="at_2_5hz", data=str(path), fps=25), "train")
+
+
+def test_a_trackers_frame_ids_read_without_fps_are_warned_about(tmp_path, at_model_rate):
+    """The 10 Hz sample without --fps is read as 2.5 Hz: its people walk a quarter of their
+    speed, slowly enough to pass the speed check. Data whose ids count 2.5 per second (every
+    row, or every 10th id as ETH/UCY) read silently."""
+    with pytest.warns(UserWarning, match=rf"^{SAMPLE}: no --fps, so its rows are taken to be "
+                                         r"the model's steps, 0\.4 s apart, where its people "
+                                         r"walk a median 0\.28 m/s; its frame ids count every "
+                                         r"frame, as a video's or a tracker's do: at --fps 10 "
+                                         r"they would walk 1\.1 m/s \(give --fps, the frame ids "
+                                         r"per second\)$"):
+        data.load_split(DataConfig(scene="no_fps", data=str(SAMPLE), scale=0.01), "train")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for path in (_renumbered_at_2_5hz(tmp_path / "every_row.txt"), at_model_rate):
+            assert len(data.load_split(DataConfig(scene=path.stem, data=str(path)), "all"))
+
+
 def test_the_bundled_scenes_and_samples_pass_the_speed_check_silently():
     from gst_jax.config import CROWD_SCENES
     from gst_jax.data import protocols
