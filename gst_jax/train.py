@@ -50,17 +50,12 @@ def train(args) -> None:
 def format_fine_tuning(report: dict) -> str:
     """Which epoch a fine-tuning kept, and the test windows' AOE/FOE of it, of the model it
     started from and of constant velocity."""
-    epoch, windows = report["selected_epoch"], report["val_windows"]
-    if epoch and "start_val_aoe" in report:
-        lines = [f"kept epoch {epoch} on validation AOE ({report['val_aoe']:.3f} m against "
-                 f"{report['start_val_aoe']:.3f} m for the starting model {report['from']}, "
-                 f"{windows} windows)"]
-    elif epoch:                                 # a selection made before the start was kept
-        lines = [f"kept epoch {epoch} on validation AOE ({report['val_aoe']:.3f} m, "
-                 f"{windows} windows)"]
-    else:
-        lines = [f"kept the starting model ({report['from']}): no epoch improved on validation "
-                 f"AOE ({report['val_aoe']:.3f} m, {windows} windows)"]
+    epoch, aoe = report["selected_epoch"], f"{report['val_aoe']:.3f} m"
+    if epoch and "start_val_aoe" in report:     # else a selection made before it was kept
+        aoe += f" against {report['start_val_aoe']:.3f} m for the starting model {report['from']}"
+    kept = (f"epoch {epoch}" if epoch
+            else f"the starting model ({report['from']}): no epoch improved")
+    lines = [f"kept {kept} on validation AOE ({aoe}, {report['val_windows']} windows)"]
     if "test" in report:
         test = report["test"]
         lines.append(f"test split, {test['windows']} windows, 20 runs: AOE / FOE (m)")
