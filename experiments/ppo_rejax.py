@@ -2,7 +2,7 @@
 task with GST in the loop: gst_jax.simulate.environment.CrowdNav as it is, behind the thin
 adapter below (a flat observation, gymnax's spaces, rejax's max_steps_in_episode).
 
-    pip install rejax
+    pip install ".[rl]"            # rejax and gymnax: the rl extra
     python experiments/ppo_rejax.py --timesteps 2000000 --envs 64
 
 The whole training (environments, GST, PPO's updates) is one jitted program. This is the
@@ -14,19 +14,23 @@ the trained policy (`gst_jax.simulate.navigation`).
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import sys
 import time
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 from flax import struct
-from gymnax.environments import spaces
-from rejax import PPO
 
 from gst_jax.runs import load_model
 from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams, Observation
 from gst_jax.simulate.navigation import max_steps, navigation_measures, run_episodes
 from gst_jax.stream import Regions
+
+if TYPE_CHECKING:                   # rejax and gymnax: the rl extra, imported where used
+    from rejax import PPO
 
 
 @struct.dataclass
@@ -61,10 +65,12 @@ class FlatCrowdNav:
         obs, state, reward, done, info = self.env.step(key, state, action, params.env)
         return flat(obs), state, reward, done, info
 
-    def action_space(self, params=None) -> spaces.Box:
+    def action_space(self, params=None):
+        from gymnax.environments import spaces
         return spaces.Box(-1.0, 1.0, (2,))
 
-    def observation_space(self, params=None) -> spaces.Box:
+    def observation_space(self, params=None):
+        from gymnax.environments import spaces
         size = 4 + self.env.num_humans * (2 * (self.env.pred_len + 1) + self.env.pred_len)
         return spaces.Box(-jnp.inf, jnp.inf, (size,))
 
@@ -79,6 +85,8 @@ def train(predictor: str = "gst", humans: int = 20, timesteps: int = 100_000, en
           steps: int = 64, seed: int = 0) -> tuple[PPO, object, dict]:
     """rejax's PPO for `timesteps` environment steps: (the algorithm, its train state, what
     the training showed: the mean reward per step over its last rollout and the seconds)."""
+    from rejax import PPO
+
     env, params = environment(predictor, humans)
     algo = PPO.create(env=FlatCrowdNav(env), env_params=AdapterParams(params, max_steps(params)),
                       total_timesteps=timesteps, num_envs=envs, num_steps=steps,
@@ -121,6 +129,10 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=0)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
+    missing = [name for name in ("rejax", "gymnax") if importlib.util.find_spec(name) is None]
+    if missing:
+        sys.exit(f"error: experiments/ppo_rejax.py needs {' and '.join(missing)}, the rl extra: "
+                 'pip install ".[rl]" (from the checkout)')
     algo, train_state, report = train(args.predictor, args.humans, args.timesteps, args.envs,
                                       seed=args.seed)
     if args.episodes:

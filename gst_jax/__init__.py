@@ -18,6 +18,7 @@ The layers, bottom up: `data` (numpy), `graph` and `gumbel`, `model`, `rollout`,
 import importlib
 import os
 import re
+import sys
 
 # XLA:CPU in jaxlib 0.10 hands elementwise and reduction fusions to YNNPACK on some CPUs (AMD
 # EPYC), and one of them segfaulted in its transpose, seen only in a process that forces
@@ -49,9 +50,27 @@ _PUBLIC = {
     "make_batch": "gst_jax.data", "make_predict": "gst_jax.predict",
 }
 # The public names, and the modules of the API reference (`pdoc gst_jax`).
-__all__ = sorted(_PUBLIC) + ["config", "crowdnav", "data", "errors", "evaluation", "interop",
-                             "metrics", "model", "predict", "pretrained", "runs", "simulate",
-                             "training"]
+__all__ = sorted(_PUBLIC) + ["config", "conformal", "coverage", "crowdnav", "data", "errors",
+                             "evaluation", "interop", "metrics", "model", "predict", "pretrained",
+                             "runs", "simulate", "stream", "training"]
+
+
+def _bind_for_pdoc() -> None:
+    """What pdoc needs to build the API reference without a warning (README, "More"): it reads
+    the names of `__all__` from the module's `__dict__`, never through `__getattr__`, so they
+    are bound here; and it resolves the annotations of a NamedTuple's constructor in the module
+    of its `__new__`, which `namedtuple` leaves unnamed (mitmproxy/pdoc#765), so each of ours
+    is named. Only where pdoc is imported: it imports jax and every public module."""
+    for name in __all__:
+        if name in _PUBLIC:
+            globals()[name] = __getattr__(name)
+        else:
+            importlib.import_module(f"{__name__}.{name}")
+    modules = [m for n, m in list(sys.modules.items()) if n.startswith(f"{__name__}.") and m]
+    for value in [value for module in modules for value in vars(module).values()]:
+        if isinstance(value, type) and issubclass(value, tuple) and hasattr(value, "_fields"):
+            if getattr(value.__new__, "__module__", "").startswith("namedtuple_"):
+                value.__new__.__module__ = value.__module__
 
 
 def __getattr__(name: str):
@@ -62,3 +81,7 @@ def __getattr__(name: str):
 
 def __dir__() -> list[str]:
     return sorted(set(globals()) | set(_PUBLIC))
+
+
+if "pdoc" in sys.modules:
+    _bind_for_pdoc()

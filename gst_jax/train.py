@@ -39,7 +39,8 @@ def train(args) -> None:
     if args.json:
         print(json.dumps(summary, indent=2))
         return
-    print(f"trained {summary['epochs']} epochs on {summary['train_windows']} windows in "
+    done = "already trained" if summary.get("already_finished") else "trained"
+    print(f"{done} {summary['epochs']} epochs on {summary['train_windows']} windows in "
           f"{summary['wall_time_s']:.0f} s; final loss {summary['final_loss']:.4f}; "
           f"evaluate with: python -m gst_jax.evaluate {workdir}")
     if "fine_tuning" in summary:
@@ -49,10 +50,12 @@ def train(args) -> None:
 def format_fine_tuning(report: dict) -> str:
     """Which epoch a fine-tuning kept, and the test windows' AOE/FOE of it, of the model it
     started from and of constant velocity."""
-    epoch = report["selected_epoch"]
-    kept = f"epoch {epoch}" if epoch else f"the starting model ({report['from']}): no epoch"
-    lines = [f"kept {kept}" + (" improved" if not epoch else "")
-             + f" on validation AOE ({report['val_aoe']:.3f} m, {report['val_windows']} windows)"]
+    epoch, aoe = report["selected_epoch"], f"{report['val_aoe']:.3f} m"
+    if epoch and "start_val_aoe" in report:     # else a selection made before it was kept
+        aoe += f" against {report['start_val_aoe']:.3f} m for the starting model {report['from']}"
+    kept = (f"epoch {epoch}" if epoch
+            else f"the starting model ({report['from']}): no epoch improved")
+    lines = [f"kept {kept} on validation AOE ({aoe}, {report['val_windows']} windows)"]
     if "test" in report:
         test = report["test"]
         lines.append(f"test split, {test['windows']} windows, 20 runs: AOE / FOE (m)")

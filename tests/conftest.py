@@ -3,7 +3,7 @@ commands the tests start, so that a program several tests build compiles once; p
 compiled at LLVM's lowest optimisation level, since the suite's time goes to compiling them,
 not to running them; and the compiled programs of each test file let go after it, since
 every program holds memory maps and the whole suite in one process would otherwise approach
-Linux's limit of 65530 (README), where XLA aborts."""
+Linux's limit of 65530 (docs/commands.md), where XLA aborts."""
 
 from __future__ import annotations
 

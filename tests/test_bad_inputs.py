@@ -135,6 +135,10 @@ MOT_ROW = "{f},1,-1,-1,-1,-1,1,{x},0.5,0"
     ([MOT_ROW.format(f=10, x=1.0)], None,
      "1: expected 4 columns (frame ped x y), found 10: '10,1,-1,-1,-1,-1,1,1.0,0.5,0'; a file "
      "with other columns names them with --columns (e.g. --columns 1,2,8,9)"),
+    (["0,1,0.5", "10,1,0.6"], None,         # no --columns given: none is named to the user
+     "1: expected 4 columns (frame ped x y), found 3: '0,1,0.5'; every row needs a frame, a "
+     "pedestrian id, x and y (a file with more columns names these four with --columns, e.g. "
+     "--columns 1,2,8,9)"),
 ])
 def test_bad_csv_files_are_refused_with_their_line(tmp_path, lines, columns, problem):
     path = _write(tmp_path / "tracker.csv", lines)

@@ -166,11 +166,114 @@ def test_the_quick_start_prints_the_table_the_readme_shows(ran):
     assert (folder / "zara1.png").stat().st_size > 10_000
 
 
-def test_the_api_reference_builds_from_the_docstrings(tmp_path):
-    subprocess.run([sys.executable, "-m", "pdoc", "-o", str(tmp_path), "gst_jax"], check=True,
-                   capture_output=True)
+def test_the_api_reference_builds_from_the_docstrings_without_a_warning(tmp_path):
+    built = subprocess.run([sys.executable, "-m", "pdoc", "-o", str(tmp_path), "gst_jax"],
+                           check=True, capture_output=True, text=True)
+    assert "Warn" not in built.stderr, built.stderr
     pages = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.html")}
     assert {"gst_jax.html", "gst_jax/crowdnav.html", "gst_jax/predict.html",
-            "gst_jax/config.html", "gst_jax/runs.html"} <= pages
+            "gst_jax/config.html", "gst_jax/runs.html", "gst_jax/stream.html",
+            "gst_jax/conformal.html", "gst_jax/coverage.html", "gst_jax/simulate.html",
+            "gst_jax/simulate/environment.html", "gst_jax/simulate/planner.html"} <= pages
+    assert 'id="make_predict"' in (tmp_path / "gst_jax.html").read_text()
     assert 'id="make_predict"' in (tmp_path / "gst_jax" / "predict.html").read_text()
     assert 'id="Predictor"' in (tmp_path / "gst_jax" / "crowdnav.html").read_text()
+
+
+# The commands (`python -m gst_jax.<command> [<subcommand>]`) and the module of each `main`.
+COMMAND_MODULES = {
+    "train": "gst_jax.train", "evaluate": "gst_jax.evaluate", "sweep": "gst_jax.sweep",
+    "plot": "gst_jax.plot", "navigate": "gst_jax.navigate", "predict": "gst_jax.predict.__main__",
+    "simulate": "gst_jax.simulate.__main__", "conformal": "gst_jax.conformal.__main__",
+    "data": "gst_jax.data.__main__", "pretrained": "gst_jax.pretrained.__main__"}
+COMMAND_LINE = re.compile(r"python3? -m gst_jax\.(\w+)((?:\\\n|[^`\n&|;])*)")
+FLAG = re.compile(r"(?<![\w-])--[a-z][\w-]*")
+
+
+@pytest.fixture(scope="module")
+def flags_of() -> dict[str, set[str]]:
+    """Each command's flags, from the parser its `main` builds (captured where `cli.run`
+    would parse it; nothing runs), keyed "train", "plot scene", ...; a command with
+    subcommands is keyed by each of them only."""
+    import argparse
+    import importlib
+
+    from gst_jax import cli
+
+    class Built(Exception):
+        pass
+
+    def built(command, parser, argv=None):
+        raise Built(parser)
+
+    def flags(parser: argparse.ArgumentParser, name: str) -> dict[str, set[str]]:
+        subcommands = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if subcommands:
+            return {key: value for sub, subparser in subcommands[0].choices.items()
+                    for key, value in flags(subparser, f"{name} {sub}").items()}
+        return {name: {o for a in parser._actions for o in a.option_strings}}
+
+    found = {}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(cli, "run", built)
+        for name, module in COMMAND_MODULES.items():
+            with pytest.raises(Built) as parsed:
+                importlib.import_module(module).main([])
+            found.update(flags(parsed.value.args[0], name))
+    return found
+
+
+def _documented_command_flags(text: str) -> list[tuple[str, str, str, int]]:
+    """(command, its first word, flag, line) for every flag written after `python -m
+    gst_jax.<command>` on its command line (in a block or a `code span`; a backslash
+    continues the line). The first word is the subcommand, if the command has any."""
+    found = []
+    for match in COMMAND_LINE.finditer(text):
+        words = match.group(2).split()
+        line = text.count("\n", 0, match.start()) + 1
+        for flag in FLAG.findall(match.group(2)):
+            found.append((match.group(1), words[0] if words else "", flag, line))
+    return found
+
+
+def test_every_documented_flag_is_a_flag_of_its_command(flags_of):
+    wrong = []
+    for page in DOCS:
+        for command, first, flag, line in _documented_command_flags(page.read_text()):
+            name = f"{command} {first}" if f"{command} {first}" in flags_of else command
+            if flag not in flags_of.get(name, set()):
+                wrong.append(f"{page.name}:{line}: `{name}` has no {flag}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_no_page_says_every_command_takes_a_flag_that_some_do_not(flags_of):
+    """A sentence such as 'every command shares the flags `--scene` ...' must hold for every
+    command; docs/commands.md says which takes which."""
+    wrong = []
+    for page in DOCS:
+        prose = re.sub(r"```.*?```", "\n\n", page.read_text(), flags=re.S)
+        for sentence in re.split(r"(?<=[.;])\s+|\n\s*\n", prose):
+            if re.search(r"\b(every|all|any) commands?\b", sentence, re.I):
+                for flag in FLAG.findall(" ".join(re.findall(r"`([^`]*)`", sentence))):
+                    lacking = sorted(name for name, flags in flags_of.items()
+                                     if flag not in flags)
+                    if lacking:
+                        wrong.append(f"{page.name}: {flag} is not a flag of {lacking}: "
+                                     f"{' '.join(sentence.split())[:120]}")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_table_of_shared_flags_says_which_command_takes_which(flags_of):
+    rows = re.findall(r"^\| (`--.*?) \| (.*?) \|$", (ROOT / "docs" / "commands.md").read_text(),
+                      re.M)
+    assert len(rows) >= 10
+    for flags, commands in rows:
+        for flag in re.findall(r"`(--[\w-]+)`", flags):
+            taking = sorted(name for name, names in flags_of.items() if flag in names)
+            assert sorted(commands.split(", ")) == taking, (flag, commands)
+    assert "conformal" in flags_of and "navigate evaluate" in flags_of
+
+
+def test_the_readme_stays_short():
+    """Detail belongs in docs/: the README is the first page a user reads."""
+    assert len((ROOT / "README.md").read_text().splitlines()) <= 220

@@ -20,7 +20,7 @@ from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_model, load_run
 from gst_jax.train import format_fine_tuning
 from gst_jax.training.loop import fit
-from gst_jax.training.state import hparams_for_epoch, step_key
+from gst_jax.training.state import TrainState, hparams_for_epoch, step_key
 from gst_jax.training.step import make_train_step
 
 SAMPLE = Path(__file__).parents[1] / "data" / "samples" / "crowd_10hz.txt"
@@ -157,6 +157,38 @@ def test_fine_tuning_selects_its_epoch_on_validation_and_reports_beside_the_star
     assert test["constant_velocity"] == {"aoe": start["cv_aoe"], "foe": start["cv_foe"]}
 
 
+def test_a_fine_tuning_reports_the_starting_models_validation_aoe_beside_the_kept_ones(
+        tmp_path, monkeypatch):
+    """What docs/own-data.md tells the user to compare: the kept epoch's validation AOE and
+    the starting model's, kept with the selection across epochs (scores stand in for the
+    evaluations: nothing compiles)."""
+    from gst_jax.training import loop
+
+    data_config = DataConfig(scene="crowd_10hz", data=str(SAMPLE), fps=10, scale=0.01,
+                             protocol="paper-val")
+    train_config = dataclasses.replace(TINY, init="pretrained:hotel_d")
+    selection = loop._Selection(ModelConfig(), data_config, train_config, WorkDir(tmp_path),
+                                {"run": "stand-in"}, None)
+    val_aoe = {"start": 0.162, "epoch 1": 0.170, "epoch 2": 0.149, "epoch 3": 0.155}
+    scoring = iter(val_aoe.values())
+    monkeypatch.setattr(selection, "_score", lambda params, window_set, key: {
+        "aoe": next(scoring, 0.3), "foe": 0.5, "cv_aoe": 0.2, "cv_foe": 0.4})
+    def state(epoch: int) -> TrainState:
+        return TrainState(params={"w": np.full(2, epoch, np.float32)}, opt_state={},
+                          step=np.int32(epoch))
+
+    selection.start(lambda: state(0))
+    for epoch in (1, 2, 3):
+        selection.after_epoch(epoch, state(epoch))
+    source = dataclasses.replace(load_model("pretrained:hotel_d"), params=state(0).params)
+    report = selection.report(source, state(3), data_config)
+    assert (report["selected_epoch"], report["val_aoe"]) == (2, 0.149)
+    assert report["start_val_aoe"] == 0.162
+    assert format_fine_tuning(report).splitlines()[0] == (
+        "kept epoch 2 on validation AOE (0.149 m against 0.162 m for the starting model "
+        f"pretrained:hotel_d, {report['val_windows']} windows)")
+
+
 # --- trackers' CSV files: a header, --columns ----------------------------------------------
 
 MOT_SAMPLE = SAMPLE.with_name("crowd_mot.csv")
@@ -291,6 +323,45 @@ def test_metres_read_as_centimetres_are_warned_about(tmp_path):
                                          r"second\), slow for pedestrians; in m it would be "
                                          r"1\.1 m/s: use --units m"):
         assert len(data.load_split(config, "train")) == 33
+
+
+def _renumbered_at_2_5hz(path: Path) -> Path:
+    """The sample at 2.5 Hz in metres, its frame ids counting every row: 0, 1, 2, ..."""
+    rows = np.loadtxt(SAMPLE)
+    rows = rows[rows[:, 0] % 4 == 0]
+    path.write_text("".join(f"{int(f) // 4} {int(p)} {float(x) / 100!r} {float(y) / 100!r}\n"
+                            for f, p, x, y in rows))
+    return path
+
+
+def test_a_wrong_fps_is_named_before_a_unit_when_a_frame_rate_explains_the_speeds(tmp_path):
+    """2.5 Hz data read with --fps 25 walk 10x too fast: ft (3.3x) would bring them under the
+    refusal, but --fps 2.5 brings them to a crowd's speed."""
+    path = _renumbered_at_2_5hz(tmp_path / "at_2_5hz.txt")
+    with pytest.raises(DataError, match=rf"^{path}: its people move at a median 10\.5 m/s "
+                                        r"\(read in m, frame ids at 25 per second\), which no "
+                                        r"pedestrian does; at --fps 2\.5 it would be 1 m/s: "
+                                        r"check --fps \(frame ids per second: a wrong rate "
+                                        r"scales every speed\); in ft it would be 3\.2 m/s "
+                                        r"\(--units ft\)$"):
+        data.load_split(DataConfig(scene="at_2_5hz", data=str(path), fps=25), "train")
+
+
+def test_a_trackers_frame_ids_read_without_fps_are_warned_about(tmp_path, at_model_rate):
+    """The 10 Hz sample without --fps is read as 2.5 Hz: its people walk a quarter of their
+    speed, slowly enough to pass the speed check. Data whose ids count 2.5 per second (every
+    row, or every 10th id as ETH/UCY) read silently."""
+    with pytest.warns(UserWarning, match=rf"^{SAMPLE}: no --fps, so its rows are taken to be "
+                                         r"the model's steps, 0\.4 s apart, where its people "
+                                         r"walk a median 0\.28 m/s; its frame ids count every "
+                                         r"frame, as a video's or a tracker's do: at --fps 10 "
+                                         r"they would walk 1\.1 m/s \(give --fps, the frame ids "
+                                         r"per second\)$"):
+        data.load_split(DataConfig(scene="no_fps", data=str(SAMPLE), scale=0.01), "train")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for path in (_renumbered_at_2_5hz(tmp_path / "every_row.txt"), at_model_rate):
+            assert len(data.load_split(DataConfig(scene=path.stem, data=str(path)), "all"))
 
 
 def test_the_bundled_scenes_and_samples_pass_the_speed_check_silently():

@@ -317,6 +317,26 @@ def uninterrupted(tmp_path_factory):
     return load_run(workdir)
 
 
+def test_a_finished_run_leaves_no_lock_and_a_rerun_says_it_is_finished(tmp_path, uninterrupted,
+                                                                        capsys):
+    from gst_jax import train
+
+    finished = uninterrupted.workdir.path
+    assert not (finished / "lock").exists() and not (finished / "interrupted").exists()
+    rerun = tmp_path / "rerun"
+    shutil.copytree(finished, rerun)
+    summary = json.loads((rerun / "summary.json").read_text())
+    capsys.readouterr()
+    assert fit(MODEL, ZARA1, FAULT_RUN, rerun) == {**summary, "already_finished": True}
+    said = capsys.readouterr().err
+    assert f"already finished: {rerun} holds all 3 epochs" in said and "resuming" not in said
+    assert json.loads((rerun / "summary.json").read_text()) == summary    # not rewritten
+    # The command says so too (the same run: TINY_RUN's flags are FAULT_RUN's configuration).
+    train.main([*TINY_RUN, "--workdir", str(rerun)])
+    assert capsys.readouterr().out.startswith("already trained 3 epochs on 24 windows in ")
+    assert sorted(p.name for p in rerun.iterdir()) == sorted(p.name for p in finished.iterdir())
+
+
 def _kill_at_save(monkeypatch, epoch: int, *, before: bool) -> None:
     """Die at the checkpoint of `epoch`, just before or just after it is written."""
     save = Checkpointer.save

@@ -167,6 +167,7 @@ def _tracks(path: Path, config: DataConfig, grid: TimeGrid) -> Tracks:
     """A file's tracks on the model's grid, in metres, their speeds checked (refused or
     warned about once: the result is cached)."""
     tracks = read_tracks(path, drop_off_grid=config.drop_off_grid, columns=config.columns)
+    frame_step, fps_assumed = tracks.frame_step, config.fps is None and tracks.rate_hz is None
     if config.data:
         frame_ids_per_s = config.fps or (tracks.rate_hz or grid.hz) * tracks.frame_step
         tracks = to_model_rate(tracks, config.fps, grid.hz, config.scale)
@@ -175,7 +176,8 @@ def _tracks(path: Path, config: DataConfig, grid: TimeGrid) -> Tracks:
         if grid.step_s != TimeGrid.step_s:  # bundled scenes are used as released, 0.4 s apart
             tracks = to_model_rate(tracks, TimeGrid().hz * tracks.frame_step, grid.hz)
     check_speeds(tracks, grid.step_s, scale=config.scale if config.data else 1.0,
-                 frame_ids_per_s=frame_ids_per_s, own=bool(config.data))
+                 frame_ids_per_s=frame_ids_per_s, own=bool(config.data), frame_step=frame_step,
+                 fps_assumed=fps_assumed)
     return tracks
 
 

@@ -110,9 +110,14 @@ def read_text_tracks(path: str | Path, *, drop_off_grid: bool = False,
     where = _column_indices(path, first[0], header, parse_columns(columns) if columns else None)
     bare = header is None and not columns       # the ETH/UCY format: exactly frame ped x y
     width = len(split(first[1]))
-    if max(where) >= width:
+    if max(where) >= width and columns:
         raise DataError(f"{path}:{first[0]}: --columns {columns} names column {max(where) + 1}, "
                         f"but the line has {width}: {first[1].strip()!r}")
+    if max(where) >= width:
+        raise DataError(f"{path}:{first[0]}: expected 4 columns (frame ped x y), found {width}: "
+                        f"{first[1].strip()!r}; every row needs a frame, a pedestrian id, x and "
+                        "y (a file with more columns names these four with --columns, e.g. "
+                        "--columns 1,2,8,9)")
     rows = []
     for line_number, line in lines:
         fields = split(line)

@@ -3,10 +3,11 @@
     <workdir>/config.json                 the run's configuration (model, data, train[, members])
     <workdir>/checkpoints/<epoch>/        orbax: the training state and the config
     <workdir>/interrupted/<epoch>/        the same, saved inside an epoch by a stop signal
-                                          (with where in the epoch), until a later save
+                                          (with where in the epoch), until a later save; gone
+                                          once the training has finished
     <workdir>/selected/<epoch>/           a fine-tuning's model: the epoch (0: the model it
                                           started from) of the best validation AOE
-    <workdir>/lock                        held by the process that trains in it
+    <workdir>/lock                        held by the process that trains in it, while it does
     <workdir>/metrics.jsonl               one JSON line per epoch: what the training computed
                                           (loss, schedule, validation, the code that trained it);
                                           the same command on the same machine writes it anew
@@ -225,19 +226,28 @@ class WorkDir:
     def lock(self) -> Iterator[None]:
         """Hold the work directory for this process (training): a second process training
         into it is refused, naming the holder. The lock is the kernel's (`flock`), so that of
-        a killed process is gone with it. With several processes, process 0's."""
+        a killed process is gone with it; the `lock` file is removed when the holder is done.
+        With several processes, process 0's."""
         if not self.writes:
             yield
             return
         self.path.mkdir(parents=True, exist_ok=True)
-        with open(self.path / "lock", "a+") as f:
+        path = self.path / "lock"
+        while True:
+            f = open(path, "a+")
             try:
                 fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 f.seek(0)
                 holder = f.read().strip() or "another process"
+                f.close()
                 raise RunError(f"{self.path} is in use by {holder}; wait for it to finish, or "
                                "stop it, before training there") from None
+            # Locked, but perhaps a file its holder removed meanwhile: lock the one there now.
+            if path.exists() and os.stat(path).st_ino == os.fstat(f.fileno()).st_ino:
+                break
+            f.close()
+        with f:
             f.seek(0)
             f.truncate()
             f.write(f"process {os.getpid()} on {socket.gethostname()} since "
@@ -246,7 +256,19 @@ class WorkDir:
             try:
                 yield
             finally:
-                f.truncate(0)
+                path.unlink(missing_ok=True)        # before the lock goes, so none is lost
+
+    def tidy(self) -> None:
+        """After a finished training: remove the empty `interrupted/` (its checkpoint is
+        discarded once a later one is saved)."""
+        folder = self.path / "interrupted"
+        if self.writes and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+
+    def read_summary(self) -> dict | None:
+        """summary.json of a finished training, or None."""
+        path = self.path / "summary.json"
+        return json.loads(path.read_text()) if path.exists() else None
 
     def read_metrics(self) -> list[dict]:
         """The per-epoch records, in order ([] before the first epoch): each line of

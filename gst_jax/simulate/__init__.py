@@ -17,4 +17,6 @@ from gst_jax.simulate.scenarios import (SCENARIOS, Scenario, boundary_wanderers,
 
 __all__ = ["ROBOT_COLLISION_DISTANCE", "SCENARIOS", "Scenario", "StepModel",
            "boundary_wanderers", "constant_velocity_model", "freezing_or_u_turn", "gst_model",
-           "intersection", "late_crossing", "oncoming_group", "robot_measures", "simulate"]
+           "intersection", "late_crossing", "oncoming_group", "robot_measures", "simulate",
+           # The modules of CrowdNav++'s task, pages of their own in the API reference.
+           "environment", "navigation", "planner"]

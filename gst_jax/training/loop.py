@@ -182,7 +182,7 @@ def _os_error_reason(error: BaseException) -> str | None:
     return None
 
 
-def _resume(training: Training, saves: _Saves, config: dict,
+def _resume(training: Training, saves: _Saves, config: dict, epochs: int,
             progress: Progress) -> tuple[TrainState, list, int, _EpochSoFar | None]:
     """(state, records, epoch to start, what that epoch has done) from the newer of the
     newest intact checkpoint and an interrupted epoch's; a fresh state where there is none."""
@@ -212,7 +212,11 @@ def _resume(training: Training, saves: _Saves, config: dict,
         saves.noted(None)
         return training.init_state(), [], 1, None
     inside = so_far is not None and so_far.steps_done > 0       # saved: "epoch 3 at step 7"
-    progress.line(f"resuming {saves.workdir.path} {'from' if inside else 'after'} {saves.saved}")
+    if last_epoch >= epochs and not inside:
+        progress.line(f"already finished: {saves.workdir.path} holds all {epochs} epochs")
+    else:
+        progress.line(f"resuming {saves.workdir.path} {'from' if inside else 'after'} "
+                      f"{saves.saved}")
     return state, records, last_epoch + 1, so_far
 
 
@@ -236,7 +240,8 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     """
     progress = progress or Progress()
     with stops_noted(), contextlib.closing(_Saves(workdir, config)) as saves:
-        state, records, start_epoch, so_far = _resume(training, saves, config, progress)
+        state, records, start_epoch, so_far = _resume(training, saves, config,
+                                                      train_config.epochs, progress)
         # One line per epoch up to the checkpoint, each saved with it: what a killed run wrote
         # after the checkpoint goes, what it did not get to write comes back.
         saves.write_metrics(records)
@@ -328,6 +333,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
             progress.line(_format_record(record))
         if saves.interrupted.latest_epoch is not None:     # the run ended after it
             saves.interrupted.discard()
+    workdir.tidy()
     return state, records
 
 
@@ -389,6 +395,13 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     start = time.perf_counter()
     with workdir.lock():
         workdir.prepare(config)
+        finished = workdir.read_summary()
+        if finished is not None and same_run(finished["config"], config):
+            workdir.tidy()                  # made before finished trainings tidied up
+            (progress or Progress()).line(
+                f"already finished: {workdir.path} holds all {train_config.epochs} epochs; "
+                f"its summary is {workdir.path / 'summary.json'}")
+            return {**finished, "already_finished": True}
         if selection is not None:
             selection.start(init_state)
         state, records = train_epochs(
@@ -410,9 +423,9 @@ SELECTION_SAMPLES = 20
 
 class _Selection:
     """A fine-tuning's model: the epoch, the starting model's 0 included, with the lowest
-    validation AOE, kept in <workdir>/selected/ (what `load_model` then reads). Every epoch is
-    scored with the same draws (one key), so that epochs differ by their parameters only; the
-    test split is never looked at to choose."""
+    validation AOE, kept in <workdir>/selected/ (what `load_model` then reads) with its score
+    and the starting model's. Every epoch is scored with the same draws (one key), so that
+    epochs differ by their parameters only; the test split is never looked at to choose."""
 
     def __init__(self, model_config: ModelConfig, data_config: DataConfig,
                  train_config: TrainConfig, workdir: WorkDir, config: dict,
@@ -433,15 +446,19 @@ class _Selection:
         scored = {"epoch": epoch, "val_aoe": result["aoe"], "val_foe": result["foe"]}
         best = self.best()
         if best is None or scored["val_aoe"] < best["val_aoe"]:
+            # The starting model's score (None in a selection made before it was kept).
+            start = best.get("start") if best else {"val_aoe": scored["val_aoe"],
+                                                     "val_foe": scored["val_foe"]}
             with contextlib.closing(self.workdir.selected_checkpointer()) as saved:
                 saved.discard()
-                saved.save(epoch, state, self.config, [], scored)
+                saved.save(epoch, state, self.config, [], {**scored, "start": start})
             best = scored
         return {"val_aoe": scored["val_aoe"], "val_foe": scored["val_foe"],
                 "selected_epoch": best["epoch"]}
 
     def best(self) -> dict | None:
-        """{"epoch", "val_aoe", "val_foe"} of the model kept so far, or None."""
+        """{"epoch", "val_aoe", "val_foe", "start"} of the model kept so far (start: the
+        starting model's {"val_aoe", "val_foe"}), or None."""
         saved = self.workdir.selected_checkpointer(create=False)
         if saved is None:
             return None
@@ -465,6 +482,9 @@ class _Selection:
         report = {"from": source.name, "selected_epoch": best["epoch"],
                   "val_windows": len(self.val_set), "val_aoe": best["val_aoe"],
                   "val_foe": best["val_foe"]}
+        if best.get("start"):
+            report.update(start_val_aoe=best["start"]["val_aoe"],
+                          start_val_foe=best["start"]["val_foe"])
         test_set = data.load_split(data_config, "test", self.model_config.grid)
         if not len(test_set):
             return report

@@ -169,6 +169,6 @@ def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool =
     The last one made is kept: tracing the model takes longer than loading its programs from
     the persistent cache, so runs of one configuration trained one after another in a
     process (tests, notebooks) trace it once. Only one: each compiled program holds memory
-    maps, of which a process may hold 65530 (README)."""
+    maps, of which a process may hold 65530 (docs/commands.md)."""
     return TrainStep(config, rotate=rotate, members=members, member_map=member_map,
                      devices=devices)
