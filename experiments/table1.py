@@ -178,7 +178,7 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
              "over the 20 runs, summed, per pedestrian; mean over seeds; '-' for records made "
              "before it was computed), comparable with the paper's ± columns. "
              "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
-             "(timings.jsonl) on the machine that trained the run, per seed."
+             "(metrics.jsonl) on the machine that trained the run, per seed."
              + (" The paper did not report this protocol: its columns are its Table I (paper "
                 "split), for orientation only, not a like-for-like comparison." if protocol != "paper"
                 else ""), "",

@@ -276,8 +276,7 @@ def test_validation_split_is_evaluated_during_training(tmp_path):
     config = TrainConfig(epochs=2, batch_size=4, max_train_windows=4, eval_every=1,
                          checkpoint_every=2)
     fit(MODEL, DataConfig(scene="hotel", protocol="paper-val"), config, tmp_path / "run")
-    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text()
-               .splitlines()]
+    records = WorkDir(tmp_path / "run").read_metrics()       # metrics.jsonl and timings.jsonl
     assert [r["epoch"] for r in records] == [1, 2]
     assert all(r["val_aoe"] > 0 and r["val_foe"] >= r["val_aoe"] * 0.5 for r in records)
     finished = [datetime.datetime.strptime(r["finished_at"], "%Y-%m-%dT%H:%M:%SZ")
