@@ -127,6 +127,25 @@ def test_dtaci_with_one_score_per_update_equals_reference():
 # (b) vmap over tracks x horizon steps equals a loop -------------------------------------------
 
 
+@pytest.mark.parametrize("eta, k_i, c_sat, in_force", [(0.05, 1.0, 0.1, False),
+                                                      (0.02, 0.5, 0.01, False),
+                                                      (0.05, 1.0, 0.1, True)])
+def test_pid_equals_reference(eta, k_i, c_sat, in_force):
+    """c_sat 0.01 drives the integrator past pi/2: the infinite and the empty disc occur."""
+    scores, mask = batches(5, 400, 4)
+    issued = np.random.default_rng(6).uniform(0, 2.0, scores.shape) if in_force else None
+    expected = reference.pid(scores, mask, ALPHA, eta, k_i, c_sat, q0=0.3,
+                             radii_in_force=issued)
+    method = conformal.pid(ALPHA, eta, k_i, c_sat)
+    with jax.enable_x64(True):
+        xs = (scores, mask) if issued is None else (scores, mask, issued)
+        final, before, last = run(method.update, method.init(0.3), xs)
+        assert_same(np.append(before, last), expected["radii"])
+        assert final.misses == pytest.approx(expected["misses"][-1], abs=1e-9)
+    if c_sat < 0.05:
+        assert np.isinf(expected["radii"]).any() and (expected["radii"][1:] == 0).any()
+
+
 def test_vmap_over_tracks_and_horizon_steps_equals_a_loop():
     tracks, horizon, steps = 3, 2, 120
     scores, mask = batches(7, steps, tracks * horizon, scale=0.3)
@@ -205,6 +224,16 @@ def test_dtaci_covers_both_streams():
     assert np.all(covered["gensafenav", "sample"] < covered["consistent", "sample"] - 0.003)
 
 
+def test_pid_covers_both_streams_within_its_bound():
+    """Quantile tracking plus the integrator: (pi/2) c_sat / log(T) + 1/T = 0.0159 for
+    T = 20000, c_sat 0.1. Measured: 0.8994 (i.i.d.) / 0.8987 (shifted)."""
+    scores = streams()
+    method = conformal.pid(ALPHA, eta=0.05, k_i=1.0, c_sat=0.1)
+    state = jax.vmap(method.init)(np.zeros(2, np.float32))
+    bound = np.pi / 2 * 0.1 / np.log(STEPS) + 1 / STEPS
+    np.testing.assert_allclose(coverage(method, state, scores), 1 - ALPHA, atol=bound)
+
+
 # (d) the delayed scores -------------------------------------------------------------------------
 
 
@@ -241,6 +270,61 @@ def test_the_score_buffer_scores_each_horizon_k_steps_late():
         np.testing.assert_allclose(delayed.scores[1], np.where(track_1, 4.0, 0))
         np.testing.assert_allclose(delayed.issued[1], np.where(track_1, 1.0, 0))
     assert got[3].mask[1].tolist() == [False, True, False]
+
+
+def test_each_method_learns_a_k_step_prediction_only_k_steps_later():
+    """A hand case: one person, horizon 2, predicted at (0, 0) for both steps at every t and
+    observed at (d_t, 0), so the horizon-k score that comes back at t is d_t, of the
+    prediction made at t - k, with the radius issued then. Horizon 2 gets its first score
+    at t = 2, none before; ACI's level and PID's sum of misses move by exactly the misses
+    against the radii issued k steps earlier (not those in force when the score arrives), and
+    DtACI's experts take exactly the scores that came back. (At t = 3 the horizon-2 score
+    4.0 is within the radius issued at t = 1, +inf, and outside the one in force then, 1.0.)"""
+    distances = np.array([0.0, 0.5, 1.0, 4.0, 0.2, 5.0])
+    horizon, gamma = 2, 0.1
+    methods = {"aci": conformal.aci(ALPHA, gamma, window=10),
+               "pid": conformal.pid(ALPHA, eta=0.1, k_i=1.0, c_sat=0.1),
+               "dtaci": conformal.dtaci(ALPHA, output="mean")}
+    states = {"aci": jax.vmap(lambda _: methods["aci"].init())(np.arange(horizon)),
+              "pid": jax.vmap(methods["pid"].init)(np.full(horizon, 1.0)),
+              "dtaci": jax.vmap(methods["dtaci"].init)(np.full(horizon, 1.0))}
+    feed = conformal.score_buffer_init(num_tracks=1, horizon=horizon)
+    issued_at, came_back = [], []            # the radii (P,) issued at t; what came back at t
+    for t, d in enumerate(distances):
+        feed, delayed = conformal.score_buffer_update(
+            feed, np.zeros((1, horizon, 2)), np.ones(1, bool), np.array([[d, 0.0]]),
+            np.ones(1, bool))
+        came_back.append((np.asarray(delayed.scores[0]), np.asarray(delayed.mask[0]),
+                          np.asarray(delayed.issued[0])))
+        for name, method in methods.items():
+            extra = (delayed.issued.T,) if name != "dtaci" else ()
+            states[name], radius = jax.vmap(method.update)(
+                states[name], delayed.scores.T, delayed.mask.T, *extra)
+            if name == "aci":
+                feed = conformal.record_issued(feed, radius[None])
+                issued_at.append(np.asarray(radius))
+    for t, (scores, mask, issued) in enumerate(came_back):
+        assert mask.tolist() == [t >= 1, t >= 2]
+        for k in (1, 2):
+            if t >= k:
+                assert scores[k - 1] == pytest.approx(distances[t])
+                assert issued[k - 1] == pytest.approx(issued_at[t - k][k - 1])
+    # ACI: the level of horizon k moves by gamma (alpha - 1{d_t > radius issued at t - k}).
+    for k in (1, 2):
+        misses = [distances[t] > issued_at[t - k][k - 1] for t in range(k, len(distances))]
+        assert float(states["aci"].level[k - 1]) == pytest.approx(
+            ALPHA + gamma * sum(ALPHA - m for m in misses), abs=1e-6)
+        assert float(states["pid"].misses[k - 1]) == pytest.approx(
+            sum(m - ALPHA for m in [distances[t] > issued[k - 1] for t, (_, _, issued) in
+                                    enumerate(came_back) if t >= k]), abs=1e-6)
+        assert int(states["pid"].count[k - 1]) == len(distances) - k
+    # DtACI: horizon 2 took d_2 .. d_5 and horizon 1 d_1 .. d_5, in order (numpy's loop).
+    for k in (1, 2):
+        fed = distances[k:, None]
+        expected = reference.dtaci(fed, np.ones_like(fed, bool), np.zeros(len(fed)), ALPHA,
+                                   (0.05, 0.1, 0.2), 2.72, 1e-3, q0=1.0, output="mean")
+        np.testing.assert_allclose(states["dtaci"].thresholds[k - 1],
+                                   expected["thresholds"][-1], rtol=1e-5)
 
 
 @pytest.mark.parametrize("batch", conformal.BATCH_MODES)
@@ -325,7 +409,7 @@ def test_jit_compiles_once_per_shape():
 @pytest.mark.parametrize("alpha", [0.0, 1.0, -1.0, float("nan")])
 def test_an_alpha_outside_0_1_is_refused_by_every_method(alpha):
     """alpha 1 gave zero-size discs, NaN NaN radii: refused where the method is made."""
-    for make in (conformal.aci, conformal.dtaci,
+    for make in (conformal.aci, conformal.dtaci, conformal.pid,
                  lambda a: conformal.split_radius(np.ones(3), None, a)):
         with pytest.raises(ValueError, match=f"alpha must lie strictly between 0 and 1, "
                                              f"got {alpha}"):

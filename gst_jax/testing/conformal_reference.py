@@ -1,9 +1,10 @@
 """Plain-numpy references of gst_jax.conformal's update equations: loops, float64, no jax.
 
-Written from the papers' equations (split conformal; Gibbs & Candès 2021 for ACI) and, for
-DtACI, from GenSafeNav's description of its port of Gibbs & Candès 2022 (the module docstring
-of gst_jax.conformal), one score and one expert at a time, for tests/test_conformal.py and
-benchmarks/bench_conformal.py to compare the jitted versions with.
+Written from the papers' equations (split conformal; Gibbs & Candès 2021 for ACI;
+Angelopoulos, Candès & Tibshirani 2023 for PID) and, for DtACI, from GenSafeNav's
+description of its port of Gibbs & Candès 2022 (gst_jax/conformal/_src/dtaci.py), one score
+and one expert at a time, for tests/test_conformal.py and benchmarks/bench_conformal.py to
+compare the jitted versions with.
 
 Each function runs one instance over T time steps; at step t it gets a batch of scores
 `scores[t]` (B,) of which `mask[t]` (B,) are present, and returns the radius in force before
@@ -128,3 +129,37 @@ def dtaci(scores, mask, uniforms, alpha: float, gammas, eta: float, sigma: float
         experts.append(expert)
     return {"radii": np.array(radii), "thresholds": np.array(thresholds),
             "probs": np.array(probs), "experts": np.array(experts)}
+
+
+def pid(scores, mask, alpha: float, eta: float, k_i: float, c_sat: float, q0: float = 0.0,
+        radii_in_force=None) -> dict[str, np.ndarray]:
+    """Conformal PID control, P and I (Angelopoulos, Candès & Tibshirani 2023), pooled: per
+    present score s in order, err = 1{s > radius in force} (the radius before the step, or
+    `radii_in_force[t][b]`); p <- p + eta (err - alpha); S <- S + err - alpha; t <- t + 1;
+    after the step, radius = max(p + K_I tan(S log(t) / (t C_sat)), 0), the tan +-inf outside
+    (-pi/2, pi/2). Returns radii (T+1,), tracking (T+1,) p, misses (T+1,) S."""
+    p, total, count = float(q0), 0.0, 0
+
+    def radius_now():
+        argument = total * math.log(max(count, 1)) / (max(count, 1) * c_sat)
+        integrator = k_i * math.tan(argument) if abs(argument) < math.pi / 2 else \
+            math.copysign(math.inf, argument)
+        return max(p + integrator, 0.0)
+
+    radius = radius_now()
+    radii, tracking, misses = [radius], [p], [total]
+    for t in range(len(scores)):
+        for b, (s, m) in enumerate(zip(scores[t], mask[t])):
+            if not m:
+                continue
+            in_force = radius if radii_in_force is None else float(radii_in_force[t][b])
+            err = 1.0 if float(s) > in_force else 0.0
+            p += eta * (err - alpha)
+            total += err - alpha
+            count += 1
+        radius = radius_now()
+        radii.append(radius)
+        tracking.append(p)
+        misses.append(total)
+    return {"radii": np.array(radii), "tracking": np.array(tracking),
+            "misses": np.array(misses)}

@@ -1,0 +1,1 @@
+"""The conformal methods, one module each; `gst_jax.conformal` re-exports them."""
