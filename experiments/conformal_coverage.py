@@ -39,12 +39,13 @@ import numpy as np
 from _common import add_results_flags, results_folder
 
 from gst_jax.config import DataConfig
-from gst_jax.coverage import METHODS, FrameRows, measure, record, scene_streams
+from gst_jax.coverage import FrameRows, measure, record, scene_streams
 from gst_jax.progress import Progress, hms
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowds import CrowdConfig, simulate_crowd
 
 SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
+METHODS = ("split", "aci", "dtaci")     # the published table's (gst_jax.coverage has pid too)
 ALPHA, CALIBRATION = 0.1, 0.3
 # Within this of 1 - alpha at every horizon step: the issue's criterion without shift, and
 # with shift.
@@ -108,34 +109,43 @@ def markdown(rows: list[dict]) -> str:
 
 
 def select(out: Path, progress: Progress) -> str:
-    """ACI's gamma and batch mode on the scenes' validation streams: per setting, the
-    coverage error |coverage - 0.9| weighted by the scores of each (scene, horizon step), and
-    how many (scene, step) cells land within TOLERANCE or issue infinite radii."""
+    """ACI's gamma and batch mode, and PID's eta, k_i and c_sat, on the scenes' validation
+    streams: per setting, the coverage error |coverage - 0.9| weighted by the scores of each
+    (scene, horizon step), and how many (scene, step) cells land within TOLERANCE or issue
+    infinite radii."""
     recordings = []
     for scene in SCENES:
         run = load_model(f"pretrained:{scene}_d")
         config = DataConfig(scene=scene, protocol="paper-val")
         recordings.append(record(run, scene_streams(config, "val", run.model_config.grid),
                                  calibration=CALIBRATION, progress=progress))
-    lines = ["# ACI's step, chosen on the validation streams", "",
+    lines = ["# The online methods' steps, chosen on the validation streams", "",
              f"alpha = {ALPHA}; each scene's validation split (protocol paper-val) through its "
              f"shipped model, scored after the first {CALIBRATION:.0%} of the frames; "
              f"{sum(r.frames for r in recordings)} frames in all. Made by "
-             "`python experiments/conformal_coverage.py --select`.", "",
-             "| batch | gamma | weighted coverage error | cells within "
-             f"{TOLERANCE} | cells with infinite radii |", "|---|---|---|---|---|"]
-    for batch, gamma in [(b, g) for b in ("sequential", "mean")
-                         for g in (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)]:
-        errors, counts, infinite = [], [], 0
-        for recording in recordings:
-            result, _ = measure(recording, "aci", ALPHA,
-                                options=(("gamma", gamma), ("batch", batch)))
-            errors += [abs(c - (1 - ALPHA)) for c in result["coverage"]]
-            counts += result["scores"]
-            infinite += int(np.isinf(result["radius"]).sum())
-        errors, counts = np.asarray(errors), np.asarray(counts)
-        lines.append(f"| {batch} | {gamma} | {np.sum(errors * counts) / counts.sum():.4f} | "
-                     f"{np.sum(errors <= TOLERANCE)}/{len(errors)} | {infinite} |")
+             "`python experiments/conformal_coverage.py --select`."]
+    aci = [(("batch", b), ("gamma", g)) for b in ("sequential", "mean")
+           for g in (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05)]
+    pid = [(("eta", e), ("k_i", k), ("c_sat", c)) for e in (0.001, 0.005, 0.02)
+           for k in (0.1, 1.0) for c in (1.0, 10.0, 100.0)]
+    for method, settings in (("aci", aci), ("pid", pid)):
+        names = [name for name, _ in settings[0]]
+        lines += ["", f"## {method}", "", "| " + " | ".join(names) + " | weighted coverage "
+                  f"error | cells within {TOLERANCE} | cells with infinite radii | mean radius "
+                  "(m) |", "|" + "---|" * (len(names) + 4)]
+        for options in settings:
+            errors, counts, radii, infinite = [], [], [], 0
+            for recording in recordings:
+                result, _ = measure(recording, method, ALPHA, options=options)
+                errors += [abs(c - (1 - ALPHA)) for c in result["coverage"]]
+                counts += result["scores"]
+                radii += result["radius"]
+                infinite += int(np.isinf(result["radius"]).sum())
+            errors, counts, radii = np.asarray(errors), np.asarray(counts), np.asarray(radii)
+            lines.append("| " + " | ".join(str(v) for _, v in options) +
+                         f" | {np.sum(errors * counts) / counts.sum():.4f} | "
+                         f"{np.sum(errors <= TOLERANCE)}/{len(errors)} | {infinite} | "
+                         f"{np.mean(radii):.2f} |")
     table = "\n".join(lines) + "\n"
     (out / "conformal_selection.md").write_text(table)
     return table
@@ -148,8 +158,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="which cases (default: all)")
     add_results_flags(parser, "conformal_coverage", "conformal_coverage.md/.json and the "
                       "records runs/*.json", runs=False)
-    parser.add_argument("--select", action="store_true", help="only tabulate ACI's gamma on "
-                        "the validation streams (conformal_selection.md)")
+    parser.add_argument("--select", action="store_true", help="only tabulate ACI's and PID's "
+                        "steps on the validation streams (conformal_selection.md)")
     args = parser.parse_args(argv)
     out = results_folder(args)
     (out / "runs").mkdir(parents=True, exist_ok=True)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 import time
 from typing import Iterator
 
@@ -29,7 +30,8 @@ from gst_jax.data.readers import Tracks
 from gst_jax.progress import Progress
 from gst_jax.stream import Regions, Stream
 
-METHODS = ("split", "aci", "dtaci")
+METHODS = ("split", "aci", "dtaci", "pid")
+ACI_GAMMA = inspect.signature(conformal.aci).parameters["gamma"].default
 
 FrameRows = tuple[int, np.ndarray, np.ndarray]     # frame id, track ids (M,), positions (M, 2)
 
@@ -120,12 +122,15 @@ def record(run, streams: list[Iterator[FrameRows]], *, calibration: float = 0.3,
 
 
 def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool = True,
-            options: tuple = (), seed: int = 0) -> tuple[dict, Snapshot | None]:
+            options: tuple = (), seed: int = 0, bonferroni: bool = False
+            ) -> tuple[dict, Snapshot | None]:
     """Coverage and mean radius per horizon step of `method` over a recording, on the frames
     after its calibration, and the snapshot of its best frame (None if there is none). split:
-    the radii of the calibration frames' scores; aci / dtaci: the recorded scores fed, as they
+    the radii of the calibration frames' scores; aci / dtaci / pid: the recorded scores fed, as they
     came back, to the online method (`Regions(method, alpha, pooled, options)`), exactly as a
-    stream with those regions would (DtACI's expert draws from `seed`)."""
+    stream with those regions would (DtACI's expert draws from `seed`). bonferroni: every
+    horizon step aims at alpha / P, so that the P discs of a prediction hold together with
+    probability at least 1 - alpha (the union bound; `joint_coverage` is that figure)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if not 0 < alpha < 1:
@@ -135,7 +140,11 @@ def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool 
     flat = [(s, m) for scores, masks, _ in files for s, m in zip(scores, masks)]
     calibrating = recording.calibrating
     result = {"method": method, "alpha": alpha, "pooled": pooled, "frames": recording.frames,
-              "calibration_frames": calibrating, "step_s": recording.step_s}
+              "calibration_frames": calibrating, "step_s": recording.step_s,
+              "bonferroni": bonferroni}
+    if bonferroni:
+        alpha = alpha / max(horizon, 1)
+        result["step_alpha"] = alpha
     if method == "split":
         calibration_scores = np.concatenate(                      # (P, n), NaN where none
             [np.where(m, s, np.nan).T for s, m in flat[:calibrating]] or
@@ -161,6 +170,11 @@ def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool 
     result.update(scores=counted.astype(int).tolist(),
                   coverage=(covered / np.maximum(counted, 1)).tolist(),
                   radius=(radii / np.maximum(counted, 1)).tolist())
+    result.update(joint_coverage(files, issued, calibrating))
+    capacity = max((f[0].shape[1] for f in files), default=1)
+    result["bound"] = aci_bound(method, pooled, options, counted, capacity)
+    if result["bound"] is not None:
+        result["gamma"] = dict(options).get("gamma", ACI_GAMMA)
     if recording.best is None:
         return result, None
     file_index, index, slots, snapshot = recording.best
@@ -168,26 +182,129 @@ def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool 
                                        radii=radii_of_file[file_index][index][slots])
 
 
+def joint_coverage(files, issued: list[np.ndarray], calibrating: int) -> dict:
+    """Whole-horizon coverage: of the predictions made after the calibration frames whose P
+    steps were all observed, the fraction with every step inside the disc issued with it (what
+    a planner's safety needs), and how many such predictions there were. `issued`: the radii
+    issued with each frame's delayed scores, flat over the files' frames."""
+    joint, predictions, first = 0, 0, 0
+    for scores, masks, _ in files:
+        frames, _, horizon = scores.shape
+        given = np.stack(issued[first:first + frames])
+        made = np.arange(max(frames - horizon, 0))                   # predictions of frame t0
+        made = made[first + made >= calibrating]
+        rows = made[:, None] + np.arange(1, horizon + 1)               # (T0, P): t0 + k
+        steps = np.arange(horizon)
+        inside = (scores[rows, :, steps] <= given[rows, :, steps])     # (T0, P, C)
+        scored = masks[rows, :, steps].all(axis=1)                     # (T0, C)
+        joint += int(np.sum(inside.all(axis=1) & scored))
+        predictions += int(np.sum(scored))
+        first += frames
+    return {"joint_coverage": joint / max(predictions, 1), "joint_predictions": predictions}
+
+
+def simultaneous(recording: Recording, method: str, alpha: float = 0.1, options: tuple = (),
+                 seed: int = 0) -> dict:
+    """Whole-horizon discs from one score per prediction: m = max_k e_k / scale_k over its P
+    steps (e_k its horizon-k distance, scale_k the mean of the horizon-k scores come back so
+    far, from a prior of one score of 0.1 k m), known when its last step is observed, P
+    frames after it was made. One online instance (`method`: aci, dtaci or pid, pooled over
+    the tracks) turns those into q, and the prediction of frame t0 gets radii q(t0) scale_k(t0)
+    (metres, (P,)): all P steps are inside exactly when m <= q(t0), so the method's own
+    coverage guarantee is one on the whole horizon. Predictions with a step unobserved are
+    neither scored nor counted. Reported over the predictions made after the calibration
+    frames: `joint_coverage`, `joint_predictions`, and per step the coverage and the mean
+    radius (`coverage`, `radius`), beside what `measure` reports for per-step discs."""
+    if method not in ("aci", "dtaci", "pid"):
+        raise ValueError(f"simultaneous discs take an online method (aci, dtaci, pid), got "
+                         f"{method!r}")
+    online = getattr(conformal, method)(alpha, **dict(options))
+    start = {"aci": (), "dtaci": (1.0,), "pid": (1.0,)}[method]
+    update = jax.jit(online.update)
+    files = recording.files
+    horizon = files[0][0].shape[-1] if files else 0
+    steps = np.arange(horizon)
+    inside_all, inside, radii, first = [], [], [], 0
+    keys = jax.random.split(jax.random.key(seed), max(len(files), 1))
+    for (scores, masks, _), key in zip(files, keys):
+        frames = scores.shape[0]
+        totals = np.cumsum(np.sum(np.where(masks, scores, 0), axis=1), axis=0)   # (F, P)
+        counts = np.cumsum(np.sum(masks, axis=1), axis=0)
+        scales = (totals + 0.1 * (steps + 1)) / (counts + 1)                   # (F, P)
+        state, issued = online.init(*start), np.zeros(frames)
+        uniforms = np.asarray(jax.random.uniform(key, (frames,)))
+        for t in range(frames):
+            made = t - horizon                          # the predictions completed now
+            if made >= 0:
+                errors = scores[made + 1 + steps, :, steps]                    # (P, C)
+                scored = masks[made + 1 + steps, :, steps].all(axis=0)         # (C,)
+                ratio = np.max(errors / scales[made][:, None], axis=0)
+                extra = (np.full(ratio.shape, issued[made]),) if method != "dtaci" else \
+                    (uniforms[t],)
+                state = update(state, ratio, scored, *extra)[0]
+                if first + made >= recording.calibrating:
+                    inside_all += (ratio <= issued[made])[scored].tolist()
+                    given = issued[made] * scales[made]                         # (P,)
+                    inside += (errors <= given[:, None]).T[scored].tolist()
+                    radii += [given] * int(scored.sum())
+            issued[t] = float(state.radius)
+        first += frames
+    inside, radii = np.asarray(inside).reshape(-1, horizon), np.asarray(radii).reshape(-1, horizon)
+    return {"method": method, "alpha": alpha, "joint_coverage": float(np.mean(inside_all))
+            if inside_all else float("nan"), "joint_predictions": len(inside_all),
+            "coverage": inside.mean(axis=0).tolist(), "radius": radii.mean(axis=0).tolist()}
+
+
+def aci_bound(method: str, pooled: bool, options: tuple, counted: np.ndarray,
+              capacity: int) -> list[float] | None:
+    """Gibbs & Candès's finite-stream bound on |coverage - (1 - alpha)| for ACI, per horizon
+    step k, over the T scores counted (a stretch of the stream, which starts at a level in
+    [-gamma, 1 + gamma]): (max(alpha_s, 1 - alpha_s) + (d + 1) gamma) / (gamma T) <=
+    (1 + gamma + k C gamma) / (gamma T), d <= k C - 1 the scores taken between a score's
+    prediction and its return (C tracks a frame pooled, one per track: k). None for the
+    other methods and for batch="mean" (whose T counts updates)."""
+    settings = dict(options)
+    if method != "aci" or settings.get("batch", "sequential") != "sequential":
+        return None
+    gamma = settings.get("gamma", ACI_GAMMA)
+    ks = np.arange(1, len(counted) + 1)
+    delay = ks * (capacity if pooled else 1)
+    return ((1 + gamma + delay * gamma) / (gamma * np.maximum(counted, 1))).tolist()
+
+
 def play(run, streams: list[Iterator[FrameRows]], *, method: str, alpha: float = 0.1,
          pooled: bool = True, calibration: float = 0.3, convention: str = "gst",
-         seed: int = 0, progress: Progress | None = None) -> tuple[dict, Snapshot | None]:
+         seed: int = 0, bonferroni: bool = False, progress: Progress | None = None
+         ) -> tuple[dict, Snapshot | None]:
     """`record` then `measure`: coverage and mean radius per horizon step of one method."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     recording = record(run, streams, calibration=calibration, convention=convention,
                        seed=seed, progress=progress)
-    return measure(recording, method, alpha, pooled, seed=seed)
+    return measure(recording, method, alpha, pooled, seed=seed, bonferroni=bonferroni)
 
 
 def format_table(result: dict) -> str:
-    """`play`'s result (with model, scene and split) as the command prints it."""
+    """`play`'s result (with model, scene and split) as the command prints it: per horizon
+    step the coverage, mean radius and the number of scores T; for ACI its bound, a figure
+    outside it marked with "!"; then the whole-horizon coverage."""
     lines = [f"{result['model']} on {result['scene']} ({result['split']} split, "
              f"{result['frames']} frames, the first {result['calibration_frames']} calibrating): "
-             f"{result['method']}, alpha {result['alpha']}",
-             "  step     s  coverage  radius (m)  scores"]
+             f"{result['method']}, alpha {result['alpha']}"
+             + (f" (Bonferroni: {result['step_alpha']:.4g} a step)" if result["bonferroni"]
+                else "")
+             + (f", gamma {result['gamma']}" if result.get("bound") else ""),
+             "  step     s  coverage  radius (m)  scores (T)" +
+             ("     bound" if result.get("bound") else "")]
+    target = 1 - result.get("step_alpha", result["alpha"])
     for k, (c, r, n) in enumerate(zip(result["coverage"], result["radius"], result["scores"])):
-        lines.append(f"  {k + 1:4d} {(k + 1) * result['step_s']:5.2f}  {c:8.3f}  {r:10.3f}  "
-                     f"{n:6d}")
+        line = f"  {k + 1:4d} {(k + 1) * result['step_s']:5.2f}  {c:8.3f}  {r:10.3f}  {n:10d}"
+        if result.get("bound"):
+            bound = result["bound"][k]
+            line += f"  +-{bound:7.3f}" + (" !" if abs(c - target) > bound else "")
+        lines.append(line)
+    lines.append(f"  all {len(result['coverage'])} steps inside their discs: "
+                 f"{result['joint_coverage']:.3f} of {result['joint_predictions']} predictions")
     return "\n".join(lines)
 
 

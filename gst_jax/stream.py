@@ -191,12 +191,12 @@ class Regions:
     online method turns the scores into the next radii.
 
     method: "dtaci" (GenSafeNav's variant, consistent loss, drawn expert), "aci" (window of
-    1000 scores), or None: score only, every radius infinite (split conformal is calibrated
+    1000 scores), "pid" (quantile tracking and integrator), or None: score only, every radius infinite (split conformal is calibrated
     from those scores, `gst_jax.conformal.split_radius`). alpha: target miscoverage. pooled:
     one instance per horizon step, fed every track's score (default), or one per slot and
     horizon step, fed that track's alone (GenSafeNav's ROS 2 node; a new track starts from
     scratch). options: (name, value) pairs for the method's constructor, e.g.
-    (("gamma", 0.002),) (`conformal.aci`, `conformal.dtaci`). The scored prediction is the
+    (("gamma", 0.002),) (`conformal.aci`, `conformal.dtaci`, `conformal.pid`). The scored prediction is the
     mean of the K samples.
     """
 
@@ -206,8 +206,8 @@ class Regions:
     options: tuple[tuple[str, Any], ...] = ()
 
     def __post_init__(self):
-        if self.method not in ("dtaci", "aci", None):
-            raise DataError(f"Regions: method must be 'dtaci', 'aci' or None, got "
+        if self.method not in ("dtaci", "aci", "pid", None):
+            raise DataError(f"Regions: method must be 'dtaci', 'aci', 'pid' or None, got "
                             f"{self.method!r}")
         if not (isinstance(self.alpha, numbers.Real) and 0 < self.alpha < 1):
             raise DataError(f"Regions: alpha (the target miscoverage) must lie in (0, 1), got "
@@ -220,14 +220,14 @@ class Regions:
         return getattr(conformal, self.method)(self.alpha, **dict(self.options))
 
     def init(self, capacity: int, horizon: int) -> Any:
-        """Fresh states: (P,) pooled, (C, P) per track; DtACI's experts start at 0.1 m per
-        horizon step."""
+        """Fresh states: (P,) pooled, (C, P) per track; DtACI's experts and PID's tracking
+        start at 0.1 m per horizon step."""
         if self.online is None:
             return None
         start = 0.1 * jnp.arange(1, horizon + 1, dtype=jnp.float32)              # (P,)
         if not self.pooled:
             start = jnp.broadcast_to(start, (capacity, horizon))
-        if self.method == "dtaci":
+        if self.method in ("dtaci", "pid"):
             init = self.online.init
             for _ in range(start.ndim):
                 init = jax.vmap(init)
@@ -271,7 +271,7 @@ class Regions:
         update = self.online.update
         for _ in range(regions.radius.ndim):
             update = jax.vmap(update)
-        if self.method == "aci":
+        if self.method in ("aci", "pid"):                      # judged by the radius issued
             regions, radii = update(regions, scores, mask, issued)
         else:
             regions, radii = update(regions, scores, mask,

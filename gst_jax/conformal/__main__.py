@@ -7,7 +7,10 @@ the test split of --scene, or of --data with --fps/--units) are fed one model st
 to the observed position. split: calibrated on the first --calibration of the frames, then
 fixed; aci / dtaci: updated online from the scores as they arrive. Reported on the frames
 after --calibration, the same for every method: long-run coverage (the fraction of scored
-predictions within the radius issued with them) and the mean radius, per horizon step.
+predictions within the radius issued with them) and the mean radius, per horizon step, with
+ACI's finite-stream bound beside it; then the whole-horizon coverage: the fraction of
+predictions with every step inside its disc, what a planner's safety needs (--bonferroni aims
+each step at alpha / P so that it holds 1 - alpha).
 """
 
 from __future__ import annotations
@@ -30,13 +33,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--split", default="test", choices=("test", "val", "train", "all"),
                         help="which split's frames to play (default: test)")
     parser.add_argument("--method", default="dtaci", choices=METHODS,
-                        help="split conformal, ACI (Gibbs & Candes 2021) or DtACI (2022, "
-                             "GenSafeNav's variant) (default: dtaci)")
+                        help="split conformal, ACI (Gibbs & Candes 2021), DtACI (2022, "
+                             "GenSafeNav's variant) or conformal PID control (Angelopoulos et "
+                             "al. 2023, quantile tracking and integrator) (default: dtaci)")
     parser.add_argument("--alpha", type=cli.open_fraction, default=0.1,
                         help="target miscoverage: discs should hold 1 - alpha (default: 0.1)")
     parser.add_argument("--calibration", type=cli.open_fraction, default=0.3, metavar="FRACTION",
                         help="the first fraction of the frames: split's calibration, and left "
                              "out of every method's figures (default: 0.3)")
+    parser.add_argument("--bonferroni", action="store_true", help="aim every horizon step at "
+                        "alpha / P, so that all P discs of a prediction hold together with "
+                        "probability 1 - alpha (default: each step at alpha)")
     parser.add_argument("--per-track", action="store_true", help="aci/dtaci per track and "
                         "horizon step, as GenSafeNav's ROS 2 node (default: pooled per step)")
     parser.add_argument("--max-frames", type=cli.positive_int, default=None,
@@ -56,11 +63,12 @@ def measure(args) -> None:
                for s in scene_streams(data_config, args.split, run.model_config.grid)]
     result, snapshot = play(run, streams, method=args.method, alpha=args.alpha,
                             pooled=not args.per_track, calibration=args.calibration,
-                            seed=args.seed, progress=Progress())
+                            seed=args.seed, bonferroni=args.bonferroni, progress=Progress())
     result.update(model=run.name, scene=data_config.scene, split=args.split)
     if args.figure and snapshot:
         conformal_regions(snapshot.history, snapshot.futures, snapshot.radii, snapshot.truth,
-                          result["coverage"], result["radius"], args.alpha, run.model_config.step_s,
+                          result["coverage"], result["radius"],
+                          result.get("step_alpha", args.alpha), run.model_config.step_s,
                           args.figure, f"{run.name} on {data_config.scene} ({args.split}), "
                           f"{args.method}, alpha {args.alpha}, frame {snapshot.frame}")
         cli.say(f"written: {args.figure}")
