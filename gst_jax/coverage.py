@@ -27,6 +27,7 @@ import numpy as np
 from gst_jax import conformal, data
 from gst_jax.config import DataConfig
 from gst_jax.data.readers import Tracks
+from gst_jax.figures import conformal_regions
 from gst_jax.progress import Progress
 from gst_jax.stream import Regions, Stream
 
@@ -282,6 +283,14 @@ def play(run, streams: list[Iterator[FrameRows]], *, method: str, alpha: float =
     recording = record(run, streams, calibration=calibration, convention=convention,
                        seed=seed, progress=progress)
     return measure(recording, method, alpha, pooled, seed=seed, bonferroni=bonferroni)
+
+
+def draw(snapshot: Snapshot, result: dict, path, title: str):
+    """The snapshot's regions and the coverage per horizon step, as a figure at `path`."""
+    return conformal_regions(snapshot.history, snapshot.futures, snapshot.radii,
+                             snapshot.truth, result["coverage"], result["radius"],
+                             result.get("step_alpha", result["alpha"]), result["step_s"], path,
+                             title)
 
 
 def format_table(result: dict) -> str:

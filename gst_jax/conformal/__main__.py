@@ -1,16 +1,13 @@
 """Play a scene as a stream and measure conformal regions around a model's predictions:
 `python -m gst_jax.conformal MODEL --scene eth --method dtaci --alpha 0.1`.
 
-MODEL is a work directory, SWEEP_DIR:MEMBER or pretrained:NAME. The split's frames (default:
-the test split of --scene, or of --data with --fps/--units) are fed one model step at a time
-(`gst_jax.stream`); every prediction (the mean mode) is scored k steps later by its distance
-to the observed position. split: calibrated on the first --calibration of the frames, then
-fixed; aci / dtaci: updated online from the scores as they arrive. Reported on the frames
-after --calibration, the same for every method: long-run coverage (the fraction of scored
-predictions within the radius issued with them) and the mean radius, per horizon step, with
-ACI's finite-stream bound beside it; then the whole-horizon coverage: the fraction of
-predictions with every step inside its disc, what a planner's safety needs (--bonferroni aims
-each step at alpha / P so that it holds 1 - alpha).
+The split's frames (default: the test split of --scene, or of --data with --fps/--units)
+are fed one model step at a time (`gst_jax.stream`); every prediction (the mean mode) is
+scored k steps later by its distance to the observed position. split: calibrated on the first
+--calibration of the frames, then fixed; aci / dtaci / pid: updated online from the scores as
+they arrive. Reported on the frames after --calibration: per horizon step the coverage (the
+fraction of scored predictions within the radius issued with them), the mean radius and
+ACI's finite-stream bound; then the share of predictions with every step inside its disc.
 """
 
 from __future__ import annotations
@@ -19,8 +16,7 @@ import itertools
 import json
 
 from gst_jax import cli
-from gst_jax.coverage import METHODS, format_table, play, scene_streams
-from gst_jax.figures import conformal_regions
+from gst_jax.coverage import METHODS, draw, format_table, play, scene_streams
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 
@@ -32,18 +28,16 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_data_flags(parser, of_run=True)
     parser.add_argument("--split", default="test", choices=("test", "val", "train", "all"),
                         help="which split's frames to play (default: test)")
-    parser.add_argument("--method", default="dtaci", choices=METHODS,
-                        help="split conformal, ACI (Gibbs & Candes 2021), DtACI (2022, "
-                             "GenSafeNav's variant) or conformal PID control (Angelopoulos et "
-                             "al. 2023, quantile tracking and integrator) (default: dtaci)")
+    parser.add_argument("--method", default="dtaci", choices=METHODS, help="split conformal, "
+                        "ACI (Gibbs & Candes 2021), DtACI (2022, GenSafeNav's variant) or PID "
+                        "(Angelopoulos et al. 2023) (default: dtaci)")
     parser.add_argument("--alpha", type=cli.open_fraction, default=0.1,
                         help="target miscoverage: discs should hold 1 - alpha (default: 0.1)")
     parser.add_argument("--calibration", type=cli.open_fraction, default=0.3, metavar="FRACTION",
                         help="the first fraction of the frames: split's calibration, and left "
                              "out of every method's figures (default: 0.3)")
-    parser.add_argument("--bonferroni", action="store_true", help="aim every horizon step at "
-                        "alpha / P, so that all P discs of a prediction hold together with "
-                        "probability 1 - alpha (default: each step at alpha)")
+    parser.add_argument("--bonferroni", action="store_true", help="aim each step at alpha / P: "
+                        "a prediction's P discs hold together with probability 1 - alpha")
     parser.add_argument("--per-track", action="store_true", help="aci/dtaci per track and "
                         "horizon step, as GenSafeNav's ROS 2 node (default: pooled per step)")
     parser.add_argument("--max-frames", type=cli.positive_int, default=None,
@@ -66,13 +60,11 @@ def measure(args) -> None:
                             seed=args.seed, bonferroni=args.bonferroni, progress=Progress())
     result.update(model=run.name, scene=data_config.scene, split=args.split)
     if args.figure and snapshot:
-        conformal_regions(snapshot.history, snapshot.futures, snapshot.radii, snapshot.truth,
-                          result["coverage"], result["radius"],
-                          result.get("step_alpha", args.alpha), run.model_config.step_s,
-                          args.figure, f"{run.name} on {data_config.scene} ({args.split}), "
-                          f"{args.method}, alpha {args.alpha}, frame {snapshot.frame}")
+        draw(snapshot, result, args.figure, f"{run.name} on {data_config.scene} ({args.split}), "
+             f"{args.method}, alpha {args.alpha}, frame {snapshot.frame}")
         cli.say(f"written: {args.figure}")
     print(json.dumps(result, indent=1) if args.json else format_table(result))
+
 
 if __name__ == "__main__":
     main()
