@@ -291,11 +291,14 @@ def _devices(array) -> list[jax.Device]:
 
 
 def _scenes(batch: SceneBatch, obs_len: int) -> str:
-    """"a scene of 300 people", "4 scenes of up to 30 people": who is observed in `batch`."""
+    """"a scene of 300 people", "4 scenes of up to 30 people in 48 slots": who is observed in
+    `batch` (and the slots of its program, which its cost follows, where they are more)."""
     seen = np.asarray(batch.position_mask)[:, :obs_len].any(axis=1).sum(axis=-1)
     people = int(seen.max()) if seen.size else 0
+    slots = np.shape(batch.position_mask)[-1]
     return (f"a scene of {people} people" if len(seen) == 1
-            else f"{len(seen)} scenes of up to {people} people")
+            else f"{len(seen)} scenes of up to {people} people"
+            + (f" in {slots} slots" if slots > people else ""))
 
 
 def _refusal(num_samples: int, batch: SceneBatch, obs_len: int, needed: int, available: int,
