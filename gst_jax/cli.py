@@ -344,7 +344,7 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
 
 def add_device_flags(parser: argparse.ArgumentParser) -> None:
     """--devices, and --coordinator / --num-processes / --process-id for several machines."""
-    group = parser.add_argument_group("devices (see the README's 'Scaling out')")
+    group = parser.add_argument_group("devices (see docs/scaling.md)")
     group.add_argument("--devices", type=positive_int, default=None,
                        help="use the first N local devices (default: all of them, for a "
                             "sweep the most that split its members evenly; with several "
