@@ -5,11 +5,13 @@ A file's frames are fed to a `gst_jax.stream.Stream` one model step at a time, f
 frame of the split's first window to its end; every prediction is scored at horizon k when
 the position k steps later is observed (`record`: once, whatever the methods). Each method
 is then measured on those scores (`measure`): the online ones are fed them as they came back,
-which issues exactly the radii of a stream running the method itself (tests/test_stream.py). The first `calibration` fraction of the frames
-calibrates split conformal (the ceil((n+1)(1-alpha))-th smallest of their scores, per
-horizon step); every method's coverage and mean radius are then measured on the frames
-after it, the same predictions for all: long-run coverage = the fraction of scored
-predictions whose observed position fell within the radius issued with them.
+which issues exactly the radii of a stream running the method itself (tests/test_stream.py).
+The first `calibration` fraction of the frames calibrates split conformal (the
+ceil((n+1)(1-alpha))-th smallest of their scores, per horizon step); every method's coverage
+and mean radius are then measured on the frames after it, the same predictions for all:
+long-run coverage = the fraction of scored predictions whose observed position fell within
+the radius issued with them; whole-horizon coverage = the fraction of predictions with every
+step inside (`joint_coverage`; `simultaneous` calibrates discs for it).
 """
 
 from __future__ import annotations
@@ -127,11 +129,12 @@ def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool 
             ) -> tuple[dict, Snapshot | None]:
     """Coverage and mean radius per horizon step of `method` over a recording, on the frames
     after its calibration, and the snapshot of its best frame (None if there is none). split:
-    the radii of the calibration frames' scores; aci / dtaci / pid: the recorded scores fed, as they
-    came back, to the online method (`Regions(method, alpha, pooled, options)`), exactly as a
-    stream with those regions would (DtACI's expert draws from `seed`). bonferroni: every
-    horizon step aims at alpha / P, so that the P discs of a prediction hold together with
-    probability at least 1 - alpha (the union bound; `joint_coverage` is that figure)."""
+    the radii of the calibration frames' scores; aci / dtaci / pid: the recorded scores fed,
+    as they came back, to the online method (`Regions(method, alpha, pooled, options)`),
+    exactly as a stream with those regions would (DtACI's expert draws from `seed`).
+    bonferroni: every horizon step aims at alpha / P, so that the P discs of a prediction hold
+    together with probability at least 1 - alpha (the union bound; `joint_coverage` is that
+    figure)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if not 0 < alpha < 1:

@@ -190,14 +190,14 @@ class Regions:
     scored k steps later, at horizon k, by its distance to the position observed then, and an
     online method turns the scores into the next radii.
 
-    method: "dtaci" (GenSafeNav's variant, consistent loss, drawn expert), "aci" (window of
-    1000 scores), "pid" (quantile tracking and integrator), or None: score only, every radius infinite (split conformal is calibrated
-    from those scores, `gst_jax.conformal.split_radius`). alpha: target miscoverage. pooled:
-    one instance per horizon step, fed every track's score (default), or one per slot and
-    horizon step, fed that track's alone (GenSafeNav's ROS 2 node; a new track starts from
-    scratch). options: (name, value) pairs for the method's constructor, e.g.
-    (("gamma", 0.002),) (`conformal.aci`, `conformal.dtaci`, `conformal.pid`). The scored prediction is the
-    mean of the K samples.
+    method: "dtaci" (GenSafeNav's variant, consistent loss, drawn expert), "aci" (window of 1000
+    scores), "pid" (quantile tracking and integrator), or None: score only, every radius
+    infinite (split conformal is calibrated from those scores,
+    `gst_jax.conformal.split_radius`). alpha: target miscoverage. pooled: one instance per
+    horizon step, fed every track's score (default), or one per slot and horizon step, fed that
+    track's alone (GenSafeNav's ROS 2 node; a new track starts from scratch). options: (name,
+    value) pairs for the method's constructor, e.g. (("gamma", 0.002),) (`conformal.aci`,
+    `conformal.dtaci`, `conformal.pid`). The scored prediction is the mean of the K samples.
     """
 
     method: str | None = "dtaci"

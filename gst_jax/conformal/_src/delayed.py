@@ -4,8 +4,9 @@
 into the delayed scores: at each step, for k = 1..P, the horizon-k score of the prediction
 made k steps earlier, masked where that track's prediction was not valid then or the track is
 not detected now; `record_issued` keeps the radii given out with a prediction, which come
-back with its scores (ACI's `radius_in_force`, for the coverage of the discs actually used). Track slots are fixed: a slot given to a new person must be cleared with
-`reset_slots` (and its per-track conformal state re-initialised by the caller).
+back with its scores (ACI's `radius_in_force`, for the coverage of the discs actually
+used). Track slots are fixed: a slot given to a new person must be cleared with `reset_slots`
+(and its per-track conformal state re-initialised by the caller).
 """
 
 from __future__ import annotations

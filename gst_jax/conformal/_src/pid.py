@@ -3,7 +3,8 @@
 **PID** (`pid`; Angelopoulos, Candès & Tibshirani 2023, "Conformal PID control for time
 series prediction"): the radius is
 
-    q_{t+1} = p_{t+1} + r_t(S_t),   p_{t+1} = p_t + eta (err_t - alpha),   S_t = sum_{i<=t} (err_i - alpha)
+    q_{t+1} = p_{t+1} + r_t(S_t),   p_{t+1} = p_t + eta (err_t - alpha),
+    S_t = sum_{i<=t} (err_i - alpha)
 
 with err_t = 1{s_t > q_t} (the radius the score's prediction was issued with). p is quantile
 tracking (the P part: on its own, |(1/T) sum err_t - alpha| <= (B + eta)/(eta T) for scores
@@ -12,9 +13,9 @@ r_t(x) = K_I tan(x log(t) / (t C_sat)), with tan(x) = sign(x) inf outside (-pi/2
 once the misses exceed alpha t by (pi/2) C_sat t / log(t), every radius is infinite until
 they no longer do (and the empty disc on the other side), so whatever the scores,
 |(1/T) sum err_t - alpha| <= (pi/2) C_sat / log(T) + (d + 1)/T with feedback d scores late
-(the paper's Proposition with h(t) = t / log(t)). The scorecaster (the D part) is left out: a trajectory's score has no
-useful forecast beyond what the predictor already gave. The disc's radius is q clipped to
-[0, inf]; p and S are kept unclipped.
+(the paper's Proposition with h(t) = t / log(t)). The scorecaster (the D part) is left out:
+a trajectory's score has no useful forecast beyond what the predictor already gave. The
+disc's radius is q clipped to [0, inf]; p and S are kept unclipped.
 
 With delayed feedback (the horizon-k score of a prediction comes back k steps later),
 `radius_in_force` gives each score's err against the radius issued with it, as for ACI. A
