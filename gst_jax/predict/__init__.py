@@ -185,10 +185,8 @@ class Predictor:
         if signature not in self._chunkings:
             chosen = self._choose((params, key, batch, controls))
             self._chunkings[signature] = chosen
-            what = (f"predicting {self.num_samples} samples of "
-                    f"{_scenes(batch, self.config.obs_len)}")
             if notice := crowd_notice(self.config, batch.positions.shape[2], chosen,
-                                      _devices(batch.positions)[0], what):
+                                      _devices(batch.positions)[0], self._work(batch)):
                 warnings.warn(notice, stacklevel=3)
         return self._chunkings[signature]
 
@@ -220,6 +218,10 @@ class Predictor:
                 return candidate
             per_sample = (candidate.bytes_needed - least.bytes_needed) / (chunk - 1)
 
+    def _work(self, batch: SceneBatch) -> str:
+        """"predicting 20 samples of a scene of 300 people", for one-line messages."""
+        return f"predicting {self.num_samples} samples of {_scenes(batch, self.config.obs_len)}"
+
     def _measure(self, samples_at_once: int, observed_steps_at_once: int | None,
                  args) -> Chunking:
         """Compile a chunking's program for these arguments (jit's cache keeps it: the call
@@ -228,8 +230,7 @@ class Predictor:
         program = self._program(samples_at_once, observed_steps_at_once)
         batch = args[2]
         devices = _devices(batch.positions)
-        check_compiler_room(f"predicting {self.num_samples} samples of "
-                            f"{_scenes(batch, self.config.obs_len)}", devices[0])
+        check_compiler_room(self._work(batch), devices[0])
         traced = program.trace(*args)
         return Chunking(samples_at_once, observed_steps_at_once,
                         *estimate(traced.lower().compile(), traced.jaxpr, devices))
