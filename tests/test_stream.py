@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import logging
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -333,6 +335,20 @@ def test_a_compilation_cache_gives_a_restarted_stream_its_programs(sim_run, tmp_
     loaded = [r.getMessage() for r in caplog.records
               if r.getMessage().startswith("Persistent compilation cache hit")]
     assert any("host_step" in message for message in loaded)
+
+
+def test_a_restarted_robot_imports_only_what_predicting_needs():
+    """Loading a shipped model and building a stream import neither orbax (0.15 s, read only
+    for checkpoints) nor a jax dtype package that spends 0.6 s registering its types: the
+    restarted process's first prediction stays under 2 s (benchmarks/bench_robot_loop.py)."""
+    program = ("import sys, ml_dtypes; from gst_jax.runs import load_model; "
+               "from gst_jax.stream import Regions, Stream; "
+               "Stream(load_model('pretrained:crowdnav_sj'), regions=Regions('dtaci', 0.1)); "
+               "print('orbax.checkpoint' in sys.modules, ml_dtypes.__version__)")
+    loaded, version = subprocess.run([sys.executable, "-c", program], capture_output=True,
+                                     text=True, check=True).stdout.split()
+    assert loaded == "False"
+    assert tuple(int(part) for part in version.split(".")[:2]) < (0, 7)
 
 
 def test_the_commands_that_compile_take_a_compilation_cache_folder(tmp_path, capsys,

@@ -17,10 +17,16 @@ from typing import Any, Callable, Iterator, NamedTuple
 
 import jax
 import numpy as np
-import orbax.checkpoint as ocp
 
 from gst_jax.errors import RunError
 from gst_jax.io.interrupts import writes_completed
+
+
+def _orbax():
+    """orbax.checkpoint, imported when a checkpoint is first written or read: importing it
+    takes ~0.15 s, which a restarted robot that only loads a shipped model should not wait."""
+    import orbax.checkpoint
+    return orbax.checkpoint
 
 
 class Restored(NamedTuple):
@@ -48,6 +54,7 @@ class Checkpointer:
     """
 
     def __init__(self, directory: Path, max_to_keep: int = 3, *, create: bool = True):
+        ocp = _orbax()
         options = ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=create,
                                                enable_async_checkpointing=False)
         self._directory = directory.absolute()
@@ -66,6 +73,7 @@ class Checkpointer:
              progress: dict | None = None) -> None:
         """Save and checksum `epoch` (with `progress`: a checkpoint inside that epoch); a
         stop signal meanwhile takes effect once it is complete."""
+        ocp = _orbax()
         if not _finite(state):
             raise RunError(f"refusing to save a non-finite training state (epoch {epoch})")
         items = dict(state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config),
@@ -108,6 +116,7 @@ class Checkpointer:
 
     def _restore_verified(self, epoch: int, abstract: Any) -> tuple[Restored | None, str | None]:
         """(the checkpoint, None), or (None, what is wrong with it)."""
+        ocp = _orbax()
         expected = self._read_checksums().get(str(epoch))
         if expected is not None and expected != self._checksum(epoch):
             return None, "its files do not match the checksum recorded when it was saved"
@@ -140,6 +149,7 @@ class Checkpointer:
     def read_json(self, item: str, epoch: int | None = None) -> Any:
         """A JSON item ("config", "metrics", "progress") of checkpoint `epoch`, by default
         the newest readable one (arrays untouched)."""
+        ocp = _orbax()
         epochs = [epoch] if epoch is not None else sorted(self._manager.all_steps(), reverse=True)
         for epoch in epochs:
             try:
