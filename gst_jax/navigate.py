@@ -5,8 +5,11 @@
 A planner in `gst_jax.simulate.environment.CrowdNav` (CrowdNav++'s default task) over many
 episodes, --chunk at a time in one jitted program; CrowdNav++'s and ICP's measures as a table.
 mpc plans against GST's predictions (--model) inflated by conformal radii (--regions),
-cv-mpc against constant-velocity ones; --humans: CrowdNav++'s ORCA or social force. Episodes
-are seeded from 1000 (CrowdNav++'s test offset); the planner's settings were chosen on seed 1.
+cv-mpc against constant-velocity ones, standing-mpc against people standing where they are
+(no predictor), truth-mpc against the simulator's own next positions (an upper bound);
+--humans: CrowdNav++'s ORCA or social force, --reactive: they see the robot, --shift: they
+change midway. Episodes are seeded from 1000 (CrowdNav++'s test offset); the planner's
+settings were chosen on seed 1.
 """
 
 from __future__ import annotations
@@ -15,10 +18,12 @@ import json
 from pathlib import Path
 
 from gst_jax import cli
+from gst_jax.errors import RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav
-from gst_jax.simulate.navigation import CHUNK, evaluate, summary
+from gst_jax.simulate.environment import (NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT, CrowdNav,
+                                          EnvParams)
+from gst_jax.simulate.navigation import CHUNK, PLANNERS, evaluate, predictor_of, summary
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
 
@@ -28,8 +33,9 @@ def main(argv: list[str] | None = None) -> None:
     evaluate_parser = parser.add_subparsers(dest="command", required=True).add_parser(
         "evaluate", help="run a planner over test episodes; CrowdNav++'s measures")
     add = evaluate_parser.add_argument
-    add("--planner", choices=("mpc", "cv-mpc"), default="mpc", help="mpc: against GST's "
-        "predictions; cv-mpc: against constant-velocity ones (default: mpc)")
+    add("--planner", choices=tuple(PLANNERS), default="mpc", help="mpc: against GST's "
+        "predictions; cv-mpc: constant-velocity ones; standing-mpc: people standing where "
+        "they are; truth-mpc: the simulator's own next positions (default: mpc)")
     add("--model", default="pretrained:crowdnav_sj_rand", type=cli.model_spec, help="mpc's "
         "predictor: a work directory or pretrained:NAME (default: %(default)s)")
     add("--regions", choices=("dtaci", "aci", "none"), default="dtaci", help="conformal "
@@ -37,6 +43,14 @@ def main(argv: list[str] | None = None) -> None:
     add("--alpha", type=cli.open_fraction, default=0.1, help="their miscoverage (default 0.1)")
     add("--humans", choices=("orca", "social-force"), default="orca", help="how the humans "
         "walk: CrowdNav++'s ORCA (default) or its social force")
+    add("--reactive", action="store_true", help="the humans see the robot and give way to it "
+        "(CrowdNav++'s robot.visible; default: they ignore it)")
+    add("--num-humans", type=cli.positive_int, default=20, help="humans in the scene "
+        "(default: 20)")
+    add("--shift", choices=(NO_SHIFT, SPEED_SHIFT, POLICY_SHIFT), default=NO_SHIFT,
+        help=f"from {EnvParams.shift_at_s:g} s into each episode the humans walk "
+        f"{EnvParams.speed_factor:g}x faster (speed) or ORCA humans switch to social force "
+        "(policy) (default: none)")
     add("--episodes", type=cli.positive_int, default=500, help="episodes (default: 500)")
     add("--plans", type=cli.at_least(SamplingMPC.fixed_plans, "the planner's fixed plans"),
         default=256, help="plans scored per step (default: 256)")
@@ -52,13 +66,19 @@ def main(argv: list[str] | None = None) -> None:
 
 def navigate(args) -> None:
     regions = None if args.regions == "none" else Regions(args.regions, args.alpha)
-    predictor = load_model(args.model) if args.planner == "mpc" else CONSTANT_VELOCITY
-    humans = args.humans.replace("-", "_")
-    env, params = CrowdNav.with_predictor(predictor, regions=regions, human_policy=humans)
+    predictor = PLANNERS[args.planner] or load_model(args.model)
+    if args.shift == POLICY_SHIFT and args.humans != "orca":
+        raise RunError("--shift policy switches ORCA humans to social force: it needs "
+                             "--humans orca")
+    env, params = CrowdNav.with_predictor(predictor, args.num_humans, regions,
+                                          args.humans.replace("-", "_"), args.reactive,
+                                          args.shift)
     planner = SamplingMPC(num_plans=args.plans, horizon=env.pred_len, step_s=params.step_s)
     result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir), {
-        "planner": args.planner, "regions": args.regions, "alpha": args.alpha, "humans":
-        args.humans, "model": args.model if args.planner == "mpc" else None}, args.gif,
+        "planner": args.planner, "predictor": predictor_of(args.planner),
+        "regions": args.regions, "alpha": args.alpha, "humans": args.humans,
+        "reactive": args.reactive, "num_humans": args.num_humans, "shift": args.shift,
+        "model": args.model if args.planner == "mpc" else None}, args.gif,
         overwrite=args.overwrite, chunk=args.chunk, progress=Progress())
     print(json.dumps(result, indent=2) if args.json else summary(result))
 

@@ -247,3 +247,86 @@ def test_constant_velocity_predictions_and_conformal_radii_around_them(step_env)
     # One step ahead the walker, at constant velocity by now, is predicted exactly: its
     # radius is 0 up to rounding. Further ahead the errors of its start from rest remain.
     assert 0 <= radii[0] < 1e-6 and np.all(radii[1:] > 0.1)
+
+
+def _walk_at_the_robot(env: CrowdNav, steps: int = 40) -> float:
+    """A human walking from 3 m left of the robot (at rest at the origin) to 3 m right of
+    it, moved by `env.human_velocities` alone: its closest approach to the robot (m)."""
+    state = _state(humans=[(-3.0, 0.02)]).replace(
+        human_goal=jnp.asarray([[3.0, 0.02]] + [[FAR + 10 * i, FAR] for i in range(1, 4)]),
+        human_v_pref=jnp.ones(4))
+    closest = np.inf
+    for _ in range(steps):
+        velocity = env.human_velocities(state, PARAMS)
+        state = state.replace(human_position=state.human_position + velocity * PARAMS.step_s,
+                              human_velocity=velocity)
+        closest = min(closest, float(jnp.linalg.norm(state.human_position[0])))
+    return closest
+
+
+@pytest.mark.parametrize("policy", [environment.ORCA, environment.SOCIAL_FORCE])
+def test_reactive_humans_see_the_robot_and_give_way_to_it(policy):
+    """CrowdNav++'s robot.visible: a human heading through the robot walks through it when
+    humans ignore the robot and keeps clear of it (radii 0.3 + 0.3) when they see it."""
+    assert _walk_at_the_robot(CrowdNav(4, human_policy=policy)) < 0.1
+    assert _walk_at_the_robot(CrowdNav(4, human_policy=policy, reactive=True)) > 0.6
+
+
+def test_a_speed_shift_makes_every_human_faster_from_its_time_on():
+    env = CrowdNav(4, shift=environment.SPEED_SHIFT)
+    state = _state(humans=[(0.0, 30.0)]).replace(
+        human_goal=jnp.asarray([[10.0, 30.0]] + [[FAR + 10 * i, FAR] for i in range(1, 4)]),
+        human_v_pref=jnp.full(4, 1.2))
+    before = env.human_velocities(state.replace(time=jnp.asarray(PARAMS.shift_at_s - 0.25)),
+                                  PARAMS)
+    after = env.human_velocities(state.replace(time=jnp.asarray(PARAMS.shift_at_s)), PARAMS)
+    np.testing.assert_allclose(before[0], [1.0, 0.0], atol=1e-5)       # ORCA's 1 m/s
+    np.testing.assert_allclose(after[0], [1.5, 0.0], atol=1e-5)        # x 1.5, under 1.8
+
+
+def test_a_policy_shift_switches_orca_humans_to_social_force():
+    env = CrowdNav(4, shift=environment.POLICY_SHIFT)
+    state = _state(humans=[(-0.5, 0.0), (0.5, 0.0)]).replace(
+        human_goal=jnp.asarray([[4.0, 0.0], [-4.0, 0.0], [FAR, 20.0], [FAR, 40.0]]),
+        human_v_pref=jnp.ones(4))
+    early, late = (state.replace(time=jnp.asarray(t)) for t in (0.0, PARAMS.shift_at_s))
+    np.testing.assert_allclose(env.human_velocities(early, PARAMS),
+                               CrowdNav(4).human_velocities(early, PARAMS))
+    np.testing.assert_allclose(env.human_velocities(late, PARAMS),
+                               environment.social_force_velocities(late, PARAMS))
+    with pytest.raises(ValueError, match="shift"):
+        CrowdNav(4, human_policy=environment.SOCIAL_FORCE, shift=environment.POLICY_SHIFT)
+
+
+@pytest.mark.parametrize("reactive", [False, True])
+def test_truth_predictions_are_the_positions_the_humans_then_take(reactive):
+    """TRUTH: the humans' next 5 positions by the environment's own rules; exact while no
+    goal changes, no one is replaced and the robot keeps its velocity."""
+    env = CrowdNav(6, environment.TRUTH, reactive=reactive)
+    params = PARAMS.replace(goal_change_chance=0.0)
+    _, state = env.reset(jax.random.key(3), params)
+    step = jax.jit(env.step_env)
+    positions, futures = [], []
+    for t in range(12):
+        _, state, _, _, _ = step(jax.random.key(t), state, jnp.array([0.3, 0.1]), params)
+        positions.append(np.asarray(state.human_position))
+        futures.append(np.asarray(env._truth(state, params)))
+    for t in range(6):
+        for k in range(5):
+            np.testing.assert_allclose(futures[t][:, k], positions[t + k + 1], atol=1e-5)
+
+
+def test_standing_predictions_hold_each_human_where_it_stands_and_get_discs():
+    """STANDING (a planner without a predictor): every predicted step is where the human
+    stands now; DtACI's discs are still calibrated around them."""
+    env = CrowdNav(4, environment.STANDING, regions=Regions("dtaci", 0.1))
+    _, state = env.reset(jax.random.key(0), PARAMS)
+    for t in range(4):
+        _, state, _, _, _ = env.step_env(jax.random.key(t), state, jnp.zeros(2), PARAMS)
+    obs, _, futures, predicted = env._observation(jax.random.key(9), state, PARAMS)
+    assert np.asarray(predicted).any()
+    np.testing.assert_array_equal(futures, jnp.broadcast_to(state.human_position[:, None],
+                                                            futures.shape))
+    assert float(obs.radii.max()) > 0
+    with pytest.raises(ValueError, match="model"):
+        CrowdNav(4, "oracle")

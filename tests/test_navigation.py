@@ -18,7 +18,7 @@ from gst_jax.runs import load_model
 from gst_jax.simulate.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL, CrowdNav,
                                           EnvParams, Observation)
 from gst_jax.simulate.navigation import (episode_measures, max_steps, navigation_measures,
-                                         run_episodes, summary)
+                                         record_name, row_label, run_episodes, summary)
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
 
@@ -182,3 +182,26 @@ def test_the_experiment_tabulates_its_records_without_running_them_again(tmp_pat
     assert "social-force humans the two planners' success rates (0.500, 0.500)" in text
     assert "change the intrusion ratio by -50 % and the navigation time by +1.0 s" in text
     assert len(json.loads((tmp_path / "navigation.json").read_text())) == 8
+
+
+def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_make(
+        tmp_path, monkeypatch):
+    """Issue 75's scenarios: every option that changes the humans names the record (runs of
+    other settings sit beside each other); a policy shift needs ORCA humans (one line)."""
+    seen = {}
+    monkeypatch.setattr(navigate, "evaluate", lambda env, params, planner, count, seed, out,
+                        described, *rest, **options: seen.update(env=env, **described) or {})
+    monkeypatch.setattr(navigate, "summary", lambda result: "")
+    navigate.main(["evaluate", "--planner", "truth-mpc", "--reactive", "--num-humans", "35",
+                   "--shift", "speed", "--workdir", str(tmp_path)])
+    env = seen.pop("env")
+    assert (env.model, env.num_humans, env.reactive, env.shift) == ("truth", 35, True, "speed")
+    assert seen["predictor"] == "truth" and seen["model"] is None
+    assert record_name("truth-mpc", "dtaci", "orca", 500, 1000, True, 35, "speed") == (
+        "truth-mpc-dtaci-reactive-humans35-shiftspeed-episodes500-seed1000")
+    assert row_label({**seen, "alpha": 0.1}) == (
+        "sampling MPC | truth (the simulator's) | DtACI 0.1 | ORCA, 35 of them, reactive, "
+        "shift: speed")
+    with pytest.raises(SystemExit, match="^error: --shift policy switches ORCA humans"):
+        navigate.main(["evaluate", "--planner", "standing-mpc", "--humans", "social-force",
+                       "--shift", "policy", "--workdir", str(tmp_path)])

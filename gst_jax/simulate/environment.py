@@ -16,8 +16,10 @@ The task is CrowdNav++'s default (Shuijing725/CrowdNav_Prediction_AttnGraph, com
   radius 6 sqrt 2 (shifted by U(0, 2) m per axis) and walk to the opposite point with ORCA
   (`orca.py`; time horizon 5 s, all 19 others, neighbour distance U(5, 10) per episode,
   radius + 0.16 m) or, CrowdNav++'s option `humans.policy = "social_force"`, with its social
-  force (`human_policy=SOCIAL_FORCE`), not seeing the robot; every 5 s each changes goal
-  with probability 0.5, and one that reaches its goal is replaced by a new human;
+  force (`human_policy=SOCIAL_FORCE`), not seeing the robot (with `reactive`, CrowdNav++'s
+  `robot.visible = True`, they see it as one more agent, radius 0.3 + 0.16 m, and give way to
+  it); every 5 s each changes goal with probability 0.5, and one that reaches its goal is
+  replaced by a new human;
 - the robot detects a human whose surface lies within 5 m (field of view 360 degrees);
 - reward, on the state before the step's move (CrowdNav++'s order): timeout 0, collision
   (centres closer than the radii) -20 and done, arrival (within 0.3 m of the goal) +10 and
@@ -31,10 +33,18 @@ The task is CrowdNav++'s default (Shuijing725/CrowdNav_Prediction_AttnGraph, com
   detected (at least 1).
 
 Predictions come from `gst_jax.stream.predict_slots` over each human's last obs_len detected
-positions (CrowdNav++'s 5), or repeat each human's last displacement (CONSTANT_VELOCITY), for
-the humans detected at both of the last two steps; without a model the observation carries
-the current positions only (CrowdNav++'s no-prediction task). With `regions`, each predicted
+positions (CrowdNav++'s 5), repeat each human's last displacement (CONSTANT_VELOCITY), hold
+each human where it stands (STANDING: a planner without a predictor) or are the simulator's
+own next positions (TRUTH: every human moved on by the rules above, its goal kept, the robot
+at its velocity; exact but for goal changes and replaced humans, an upper bound on what any
+predictor can give), for the humans detected at both of the last two steps; without a model
+the observation carries the current positions only (CrowdNav++'s no-prediction task). With `regions`, each predicted
 step also gets a conformal radius (`gst_jax.stream.Regions`), scored as the humans move on.
+
+A distribution shift (`shift`), from `EnvParams.shift_at_s` into every episode: SPEED_SHIFT
+makes every human faster by `speed_factor` (preferred and top speed), POLICY_SHIFT switches
+ORCA humans to social force (GenSafeNav's shift between calibration and test; online regions
+calibrate on the episode's first part).
 
 Where this differs from CrowdNav++, on purpose: rejection sampling of starts and goals takes
 the first acceptable of a fixed number of draws (CrowdNav++ draws until one is); a new
@@ -70,10 +80,13 @@ UNDETECTED = 15.0
 # 10^5 episodes, and then the last is taken).
 TRIES = 8
 ROBOT_TRIES = 32
-# `CrowdNav.model` for predictions that repeat each human's last displacement.
-CONSTANT_VELOCITY = "constant_velocity"
+# `CrowdNav.model` for predictions that repeat each human's last displacement, that hold each
+# human where it stands, and that are the simulator's own next positions.
+CONSTANT_VELOCITY, STANDING, TRUTH = "constant_velocity", "standing", "truth"
 # `CrowdNav.human_policy`: how the humans walk (CrowdNav++'s `humans.policy`).
 ORCA, SOCIAL_FORCE = "orca", "social_force"
+# `CrowdNav.shift`: none, the humans speed up, or ORCA humans switch to social force.
+NO_SHIFT, SPEED_SHIFT, POLICY_SHIFT = "none", "speed", "policy"
 
 
 @flax.struct.dataclass
@@ -108,6 +121,10 @@ class EnvParams:
     force_range: float = 1.0
     relocation_rate: float = 1.0
     prediction_radius: float = 0.6
+    # A shift (CrowdNav.shift) takes effect this far into every episode: about half of a
+    # successful episode's 12-15 s.
+    shift_at_s: float = 6.0
+    speed_factor: float = 1.5
 
 
 @flax.struct.dataclass
@@ -157,9 +174,9 @@ class Observation(NamedTuple):
 class CrowdNav:
     """The environment: `num_humans` humans; predictions over `obs_len` observed steps for
     `pred_len` by `model`: a `StreamModel` (its weights in `EnvParams.predictor`),
-    CONSTANT_VELOCITY (each human's last displacement repeated) or None (no prediction);
-    with `regions`, conformal radii around the predicted steps (`gst_jax.stream.Regions`);
-    the humans walk by ORCA or SOCIAL_FORCE (`human_policy`)."""
+    CONSTANT_VELOCITY, STANDING, TRUTH or None (no prediction); with `regions`, conformal
+    radii around the predicted steps (`gst_jax.stream.Regions`); the humans walk by ORCA or
+    SOCIAL_FORCE (`human_policy`), seeing the robot where `reactive`, shifted by `shift`."""
 
     num_humans: int = 20
     model: StreamModel | str | None = None
@@ -167,21 +184,34 @@ class CrowdNav:
     pred_len: int = 5
     regions: Regions | None = None
     human_policy: str = ORCA
+    reactive: bool = False
+    shift: str = NO_SHIFT
 
     def __post_init__(self):
         if self.human_policy not in (ORCA, SOCIAL_FORCE):
             raise ValueError(f"human_policy must be {ORCA!r} or {SOCIAL_FORCE!r}, "
                              f"got {self.human_policy!r}")
+        if self.shift not in (NO_SHIFT, SPEED_SHIFT, POLICY_SHIFT):
+            raise ValueError(f"shift must be one of {NO_SHIFT!r}, {SPEED_SHIFT!r}, "
+                             f"{POLICY_SHIFT!r}, got {self.shift!r}")
+        if self.shift == POLICY_SHIFT and self.human_policy != ORCA:
+            raise ValueError("shift 'policy' switches ORCA humans to social force: "
+                             f"human_policy must be {ORCA!r}")
+        if isinstance(self.model, str) and self.model not in (CONSTANT_VELOCITY, STANDING,
+                                                              TRUTH):
+            raise ValueError(f"model must be a StreamModel, None, {CONSTANT_VELOCITY!r}, "
+                             f"{STANDING!r} or {TRUTH!r}, got {self.model!r}")
 
     @classmethod
     def with_predictor(cls, predictor, num_humans: int = 20, regions: Regions | None = None,
-                       human_policy: str = ORCA) -> tuple["CrowdNav", EnvParams]:
+                       human_policy: str = ORCA, reactive: bool = False, shift: str = NO_SHIFT
+                       ) -> tuple["CrowdNav", EnvParams]:
         """The environment and its params, predictions by `predictor`: a loaded model
         (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor) whose time step is
-        the environment's (RunError otherwise), CONSTANT_VELOCITY or None."""
+        the environment's (RunError otherwise), CONSTANT_VELOCITY, STANDING, TRUTH or None."""
+        humans = dict(human_policy=human_policy, reactive=reactive, shift=shift)
         if predictor is None or isinstance(predictor, str):
-            return cls(num_humans, predictor, regions=regions,
-                       human_policy=human_policy), EnvParams()
+            return cls(num_humans, predictor, regions=regions, **humans), EnvParams()
         run, config, params = predictor, predictor.model_config, EnvParams()
         if not math.isclose(config.step_s, params.step_s):
             raise RunError(f"{run.name} predicts steps of {config.step_s:g} s, the environment "
@@ -189,7 +219,7 @@ class CrowdNav:
                            f"predictions would be read at the wrong times; use a model of "
                            f"{params.step_s:g} s steps, e.g. pretrained:crowdnav_sj_rand")
         return (cls(num_humans, StreamModel(config), config.obs_len, config.pred_len, regions,
-                    human_policy), params.replace(predictor=run.params))
+                    **humans), params.replace(predictor=run.params))
 
     @property
     def default_params(self) -> EnvParams:
@@ -259,18 +289,53 @@ class CrowdNav:
 
     # -- parts ----------------------------------------------------------------------------
     def human_velocities(self, state: EnvState, params: EnvParams) -> jax.Array:
-        """Every human's new velocity (H, 2) among the other humans only. ORCA: towards its
-        goal at 1 m/s (less within 1 m of it), at most its preferred speed."""
+        """Every human's new velocity (H, 2) among the other humans (and the robot, where
+        `reactive`). ORCA: towards its goal at 1 m/s (less within 1 m of it), at most its
+        preferred speed; both `speed_factor` times more once a speed shift has begun."""
+        shifted = state.time >= params.shift_at_s
+        factor = 1.0
+        if self.shift == SPEED_SHIFT:
+            factor = jnp.where(shifted, params.speed_factor, 1.0)
+            state = state.replace(human_v_pref=state.human_v_pref * factor)
         if self.human_policy == SOCIAL_FORCE:
-            return social_force_velocities(state, params)
+            return social_force_velocities(state, params, self.reactive)
+        orca = self._orca_velocities(state, params, factor)
+        if self.shift == POLICY_SHIFT:
+            return jnp.where(shifted, social_force_velocities(state, params, self.reactive),
+                             orca)
+        return orca
+
+    def _orca_velocities(self, state: EnvState, params: EnvParams, factor) -> jax.Array:
         to_goal = state.human_goal - state.human_position
         distance = jnp.linalg.norm(to_goal, axis=-1, keepdims=True)
-        preferred = jnp.where(distance > 1.0, to_goal / jnp.maximum(distance, 1e-9), to_goal)
-        orca = OrcaParams(params.time_horizon, self.num_humans - 1, state.neighbour_dist)
-        return orca_velocities(state.human_position, state.human_velocity,
-                               state.human_radius + 0.01 + params.safety_space,
-                               state.human_v_pref, preferred,
-                               jnp.ones(self.num_humans, bool), orca, params.step_s)
+        preferred = factor * jnp.where(distance > 1.0, to_goal / jnp.maximum(distance, 1e-9),
+                                       to_goal)
+        agents = (state.human_position, state.human_velocity,
+                  state.human_radius + 0.01 + params.safety_space, state.human_v_pref, preferred)
+        if self.reactive:         # the robot is one more agent, as CrowdNav++ adds it
+            robot = (state.robot_position, state.robot_velocity,
+                     params.robot_radius + 0.01 + params.safety_space, params.robot_v_pref,
+                     state.robot_velocity)
+            agents = tuple(jnp.concatenate([h, jnp.reshape(r, (1, *h.shape[1:]))])
+                           for h, r in zip(agents, robot))
+        count = agents[0].shape[0]
+        orca = OrcaParams(params.time_horizon, count - 1, state.neighbour_dist)
+        return orca_velocities(*agents, jnp.ones(count, bool), orca,
+                               params.step_s)[:self.num_humans]
+
+    def _truth(self, state: EnvState, params: EnvParams) -> jax.Array:
+        """The humans' next `pred_len` positions (H, P, 2) by the environment's own rules:
+        goals kept, no one replaced, the robot at its velocity."""
+        def move(state, _):
+            velocity = self.human_velocities(state, params)
+            state = state.replace(
+                human_position=state.human_position + velocity * params.step_s,
+                human_velocity=velocity, time=state.time + params.step_s,
+                robot_position=state.robot_position + state.robot_velocity * params.step_s)
+            return state, state.human_position
+
+        _, futures = jax.lax.scan(move, state, length=self.pred_len)
+        return jnp.swapaxes(futures, 0, 1)
 
     def _observation(self, key: jax.Array, state: EnvState, params: EnvParams,
                      fresh: bool = False) -> tuple[Observation, EnvState, jax.Array, jax.Array]:
@@ -292,6 +357,10 @@ class CrowdNav:
             last = tracks.positions[:, -1] - tracks.positions[:, -2]
             steps = jnp.arange(1, self.pred_len + 1)[:, None]
             futures = now[:, None] + steps * last[:, None]
+        elif self.model == STANDING:
+            futures = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
+        elif self.model == TRUTH:
+            futures = self._truth(state, params)
         else:
             slots, _ = predict_slots(self.model, params.predictor, predict_key, tracks)
             futures = jnp.swapaxes(slots[0], 0, 1)                              # (H, P, 2)
@@ -316,18 +385,24 @@ class CrowdNav:
         return obs, state, futures, predicted
 
 
-def social_force_velocities(state: EnvState, params: EnvParams) -> jax.Array:
+def social_force_velocities(state: EnvState, params: EnvParams, reactive: bool = False
+                            ) -> jax.Array:
     """CrowdNav++'s social force (crowd_nav/policy/social_force.py), every human (H, 2): its
     velocity changed in one step by KI (v_pref towards the goal - velocity) and by each other
-    human's push A exp((r_i + r_j - d_ij) / B) along their offset, then capped at v_pref."""
+    human's push A exp((r_i + r_j - d_ij) / B) along their offset (and the robot's, where
+    `reactive`), then capped at v_pref."""
     to_goal = state.human_goal - state.human_position
     distance = jnp.linalg.norm(to_goal, axis=-1, keepdims=True)
     desired = to_goal / jnp.maximum(distance, 1e-9) * state.human_v_pref[:, None]
     pull = params.relocation_rate * (desired - state.human_velocity)
-    offsets = state.human_position[:, None] - state.human_position[None]          # [i, j] p_i - p_j
+    others, others_radius = state.human_position, state.human_radius
+    if reactive:
+        others = jnp.concatenate([others, state.robot_position[None]])
+        others_radius = jnp.concatenate([others_radius, jnp.array([params.robot_radius])])
+    offsets = state.human_position[:, None] - others[None]                         # [i, j] p_i - p_j
     apart = jnp.linalg.norm(offsets, axis=-1)
     strength = params.force_strength * jnp.exp(
-        (state.human_radius[:, None] + state.human_radius[None] - apart) / params.force_range)
+        (state.human_radius[:, None] + others_radius[None] - apart) / params.force_range)
     # A human's own offset is zero, so it does not push itself.
     push = jnp.sum((strength / jnp.maximum(apart, 1e-9))[..., None] * offsets, axis=1)
     velocity = state.human_velocity + (pull + push) * params.step_s

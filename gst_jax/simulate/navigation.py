@@ -7,8 +7,8 @@ as CrowdNav++'s test script reports them (`rl/evaluation.py`): success, collisio
 timeout rates; navigation time over the successful episodes, path length over all; the
 intrusion ratio, the fraction of an episode's steps in which a human's actual position over
 the next 5 steps comes within 0.6 m (robot + human radius) of the robot (CrowdNav++ rolls
-ORCA forward for this; here the humans' recorded positions are those futures, which they
-are, as they ignore the robot, save for goal changes and replaced humans).
+ORCA forward for this, without goal changes or replaced humans; here the humans' recorded
+positions are those futures, the ones they took, also where they react to the robot).
 """
 
 from __future__ import annotations
@@ -25,13 +25,26 @@ import numpy as np
 
 from gst_jax.errors import RunError
 from gst_jax.progress import Progress
-from gst_jax.simulate.environment import (COLLISION, REACH_GOAL, TIMEOUT, CrowdNav, EnvParams,
+from gst_jax.simulate.environment import (COLLISION, CONSTANT_VELOCITY, NO_SHIFT, REACH_GOAL,
+                                          STANDING, TIMEOUT, TRUTH, CrowdNav, EnvParams,
                                           Observation)
 from gst_jax.simulate.figures import animate_navigation
 from gst_jax.simulate.planner import PlannerState, SamplingMPC
 
 # A planner: (key, its state, observation) -> (velocity (2,), its next state).
 Planner = Callable[[jax.Array, PlannerState, Observation], tuple[jax.Array, PlannerState]]
+
+
+# The sampling MPC's variants by what it plans against: `CrowdNav`'s model (None: GST's,
+# loaded from --model), and the name of that predictor in records.
+PLANNERS = {"mpc": None, "cv-mpc": CONSTANT_VELOCITY, "standing-mpc": STANDING,
+            "truth-mpc": TRUTH}
+PREDICTORS = {"mpc": "gst", "cv-mpc": "cv", "standing-mpc": "none", "truth-mpc": "truth"}
+
+
+def predictor_of(planner: str) -> str:
+    """A planner's predictor as records name it: gst, cv, none (people standing) or truth."""
+    return PREDICTORS[planner]
 
 
 def max_steps(params: EnvParams) -> int:
@@ -157,13 +170,20 @@ COLUMNS = ("success", "collision", "timeout", "navigation_time_s", "path_length_
 
 def row_label(record: dict) -> str:
     """A record's first four cells: planner, predictions, discs, humans (ORCA's where it
-    names none, as records before the social-force option)."""
+    names none, as records before the social-force option; then how many where not 20,
+    whether they react to the robot, and their shift)."""
     model = record.get("model") or ""
-    predictions = ("constant velocity" if record["planner"] == "cv-mpc" else
-                   f"GST ({model.removeprefix('pretrained:').rstrip('/').split('/')[-1]})")
+    predictions = {"cv-mpc": "constant velocity", "standing-mpc": "none (standing)",
+                   "truth-mpc": "truth (the simulator's)"}.get(
+        record["planner"], f"GST ({model.removeprefix('pretrained:').rstrip('/').split('/')[-1]})")
     discs = ("none" if record["regions"] == "none" else
              f"{'DtACI' if record['regions'] == 'dtaci' else 'ACI'} {record['alpha']:g}")
     humans = "social force" if record.get("humans") == "social-force" else "ORCA"
+    humans = ", ".join([humans, *([f"{record['num_humans']} of them"]
+                                  if record.get("num_humans", 20) != 20 else []),
+                        *(["reactive"] if record.get("reactive") else []),
+                        *([f"shift: {record['shift']}"] if record.get("shift", NO_SHIFT)
+                          != NO_SHIFT else [])])
     return f"sampling MPC | {predictions} | {discs} | {humans}"
 
 
@@ -186,10 +206,16 @@ def summary(result: dict) -> str:
                       f"{result['compile_s']} s, running {result['run_s']} s"])
 
 
-def record_name(planner: str, regions: str, humans: str, episodes: int, seed: int) -> str:
-    """The stem of an evaluation's files: PLANNER-REGIONS[-HUMANS]-episodesCOUNT-seedSEED
-    (ORCA's humans, the default, unnamed), so that runs of other lengths sit beside it."""
+def record_name(planner: str, regions: str, humans: str, episodes: int, seed: int,
+                reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT) -> str:
+    """The stem of an evaluation's files:
+    PLANNER-REGIONS[-HUMANS][-reactive][-humansN][-shiftS]-episodesCOUNT-seedSEED (the
+    defaults unnamed: 20 ORCA humans who ignore the robot, no shift), so that runs of other
+    settings and lengths sit beside it."""
     return "-".join([planner, regions, *([humans] if humans != "orca" else []),
+                     *(["reactive"] if reactive else []),
+                     *([f"humans{num_humans}"] if num_humans != 20 else []),
+                     *([f"shift{shift}"] if shift != NO_SHIFT else []),
                      f"episodes{episodes}", f"seed{seed}"])
 
 
@@ -197,11 +223,14 @@ def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int,
              out: Path, described: dict, gifs: int = 0, *, overwrite: bool = False,
              chunk: int = CHUNK, progress: Progress | None = None) -> dict:
     """`count` episodes of `planner` measured: `described` (its "planner" and "regions",
-    and "humans" where they are not ORCA's, name the files), the measures and the timings,
+    and "humans", "reactive", "num_humans", "shift" where they are not the defaults, name
+    the files), the measures and the timings,
     written to out/`record_name`.json, and a GIF of each of the first `gifs` episodes beside
     it. An existing record is replaced only with `overwrite` (refused before compiling)."""
     name = record_name(described["planner"], described["regions"],
-                       described.get("humans", "orca"), count, seed)
+                       described.get("humans", "orca"), count, seed,
+                       described.get("reactive", False), described.get("num_humans", 20),
+                       described.get("shift", NO_SHIFT))
     if (out / f"{name}.json").exists() and not overwrite:
         raise RunError(f"{out / name}.json exists: a run of the same {count} episodes; "
                        f"--overwrite replaces it, another --workdir keeps it")
