@@ -38,14 +38,20 @@ FEATURES = {"nonlinearity": "distance of the true endpoint from the CV extrapola
             "neighbours": "most people within 2 m at one observed step"}
 
 
-def records_of(model: str, scene: str, out: Path, progress: Progress) -> dict[str, np.ndarray]:
-    """The per-pedestrian records of `model` on `scene`'s paper test split (cached)."""
-    path = out / "runs" / f"strata-{model.split(':')[-1]}-{scene}.npz"
+def records_of(model: str, scene: str, out: Path, progress: Progress, split: str = "test"
+               ) -> dict[str, np.ndarray]:
+    """The per-pedestrian records of `model` on `scene`'s paper `split` (cached); "val" is
+    paper-val's, the end of each file's paper train windows (those the shipped models were
+    trained on: in-sample for them)."""
+    name = f"strata-{model.split(':')[-1]}-{scene}" + ("" if split == "test" else f"-{split}")
+    path = out / "runs" / f"{name}.npz"
     if path.exists():
         with np.load(path) as cached:
             return dict(cached)
     run = load_model(model)
-    window_set = data.load_split(DataConfig(scene=scene), "test", run.model_config.grid)
+    protocol = "paper-val" if split == "val" else "paper"
+    window_set = data.load_split(DataConfig(scene=scene, protocol=protocol), split,
+                                 run.model_config.grid)
     predicted = predict_windows(run.params, jax.random.key(SEED), window_set, run.model_config,
                                 num_samples=SAMPLES, progress=progress)
     records = strata.pedestrian_records(predicted, run.model_config.obs_len)
