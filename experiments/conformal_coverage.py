@@ -167,8 +167,11 @@ def joint(out: Path, progress: Progress) -> str:
              "scales, calibrated online. Cells: joint coverage / mean radius over the steps "
              f"(m); within: simultaneous within {JOINT_TOLERANCE} of 0.9. Made by "
              "`python experiments/conformal_coverage.py --joint --publish`.", "",
-             "| case | predictions | method | per step | Bonferroni | simultaneous | within |",
-             "|---|---|---|---|---|---|---|"]
+             "half-width: the binomial 95 % half-width of a coverage of 0.9 over that many "
+             "independent predictions (pooled predictions of one frame are not independent: "
+             "the true spread is wider), what the stream's length alone allows.", "",
+             "| case | predictions | half-width | method | per step | Bonferroni | simultaneous "
+             "| within |", "|---|---|---|---|---|---|---|---|"]
     rows = []
     for name, (model, streams_of, shows) in cases().items():
         run = load_model(model)
@@ -185,7 +188,9 @@ def joint(out: Path, progress: Progress) -> str:
                               "mean_radius": float(np.mean(result["radius"]))}
             row["within"] = abs(together["joint_coverage"] - (1 - ALPHA)) <= JOINT_TOLERANCE
             rows.append(row)
-            lines.append(f"| {name} ({shows}) | {row['predictions']} | {method} | " + " | ".join(
+            half = 1.96 * np.sqrt(ALPHA * (1 - ALPHA) / max(row["predictions"], 1))
+            lines.append(f"| {name} ({shows}) | {row['predictions']} | {half:.3f} | {method} | "
+                         + " | ".join(
                 f"{row[k]['joint_coverage']:.3f} / {row[k]['mean_radius']:.2f}"
                 for k in ("per_step", "bonferroni", "simultaneous"))
                 + f" | {'yes' if row['within'] else 'no'} |")
