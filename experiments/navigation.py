@@ -1,16 +1,23 @@
-"""Does planning against GST's calibrated predictions help a robot in CrowdNav++'s task?
-(issue 60): the sampling MPC against GST's predictions and against constant velocity, each
-with DtACI discs and without, over the same 500 test episodes (seed 1000 on); and both with
-DtACI discs among CrowdNav++'s social-force humans instead of its ORCA ones.
+"""Does planning against GST's calibrated predictions help a robot in CrowdNav++'s task, and
+when would any predictor? (issues 60 and 75): the sampling MPC against GST's predictions and
+against constant velocity, each with DtACI discs and without, over the same 500 test episodes
+(seed 1000 on); both with DtACI discs among CrowdNav++'s social-force humans; and (issue 75)
+among humans who see the robot and give way to it (ORCA and social force, 10, 20 and 35 of
+them) and humans who change midway (1.5x faster, or ORCA to social force, 6 s in), against
+four predictors: none (people standing where they are), constant velocity, GST, and the
+simulator's own next positions (truth: what no predictor can beat), each with and without
+DtACI discs.
 
     python experiments/navigation.py                 # runs/navigation/
     python experiments/navigation.py --publish       # results/navigation.{md,json}
+    python experiments/navigation.py --tabulate      # only the records already made
 
 Each configuration is `python -m gst_jax.navigate evaluate --planner P --regions R
-[--humans social-force] --episodes 500` (`gst_jax.simulate.navigation.evaluate`); one whose
-record is already in the
-output folder is not run again. Beside them, CrowdNav++'s own released test logs (its RL
-policy with GST, 500 episodes each), whose setting differs (below the table).
+[--humans social-force] [--reactive] [--num-humans N] [--shift S] --episodes 500`
+(`gst_jax.simulate.navigation.evaluate`); one whose record is already in the output folder is
+not run again, so an interrupted study continues where it stopped. Beside them, CrowdNav++'s
+own released test logs (its RL policy with GST, 500 episodes each), whose setting differs
+(below the table).
 """
 
 from __future__ import annotations
@@ -18,18 +25,32 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import time
 
 from _common import add_results_flags, results_folder
 
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav
-from gst_jax.simulate.navigation import evaluate, format_table, record_name, row_label
+from gst_jax.simulate.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT, CrowdNav
+from gst_jax.simulate.navigation import (PLANNERS, evaluate, format_table, predictor_of,
+                                         record_name, row_label)
 from gst_jax.simulate.planner import SamplingMPC
 from gst_jax.stream import Regions
 
-CONFIGURATIONS = [("mpc", "dtaci", "orca"), ("mpc", "none", "orca"), ("cv-mpc", "dtaci", "orca"),
-                  ("cv-mpc", "none", "orca"), ("mpc", "dtaci", "social-force"),
-                  ("cv-mpc", "dtaci", "social-force")]
+
+# A scenario, how the humans walk: (policy, reactive, num_humans, shift). Issue 60: CrowdNav++'s default humans (20 ORCA, ignoring the robot) and its social force.
+DEFAULT, SOCIAL_FORCE = ("orca", False, 20, NO_SHIFT), ("social-force", False, 20, NO_SHIFT)
+CONFIGURATIONS = [("mpc", "dtaci", DEFAULT), ("mpc", "none", DEFAULT),
+                  ("cv-mpc", "dtaci", DEFAULT), ("cv-mpc", "none", DEFAULT),
+                  ("mpc", "dtaci", SOCIAL_FORCE), ("cv-mpc", "dtaci", SOCIAL_FORCE)]
+# Issue 75, in the order they run (the likeliest to need a predictor first): every planner,
+# with discs and without, in each scenario.
+SCENARIOS = [("orca", True, 20, NO_SHIFT), ("orca", False, 20, SPEED_SHIFT),
+             ("orca", False, 20, POLICY_SHIFT), ("orca", True, 35, NO_SHIFT),
+             ("social-force", True, 20, NO_SHIFT), ("orca", True, 10, NO_SHIFT),
+             ("social-force", True, 35, NO_SHIFT), ("social-force", True, 10, NO_SHIFT)]
+MATRIX = [(planner, regions, scenario) for scenario in SCENARIOS
+          for planner in ("truth-mpc", "mpc", "cv-mpc", "standing-mpc")
+          for regions in ("dtaci", "none")]
 MODEL = "pretrained:crowdnav_sj_rand"
 # CrowdNav++'s released test logs (commit 3907731, trained_models/*/test/*.log, line 9; 500
 # episodes each; path length over all episodes, navigation time over the successes).
@@ -42,18 +63,37 @@ CROWDNAV = [
 ]
 
 
-def run(planner: str, regions: str, humans: str, episodes: int, seed: int, out) -> dict:
-    found = out / f"{record_name(planner, regions, humans, episodes, seed)}.json"
-    if found.exists():
-        return json.loads(found.read_text())
+def described(planner: str, regions: str, scenario: tuple) -> dict:
+    """A configuration's record fields (those that name its file among them)."""
+    humans, reactive, num_humans, shift = scenario
+    return {"planner": planner, "predictor": predictor_of(planner), "regions": regions,
+            "alpha": 0.1, "humans": humans, "reactive": reactive, "num_humans": num_humans,
+            "shift": shift, "model": MODEL if planner == "mpc" else None}
+
+
+def found(planner: str, regions: str, scenario: tuple, episodes: int, seed: int, out
+          ) -> dict | None:
+    """A configuration's record, if the output folder has it (records made before issue 75
+    lack its fields: they are the defaults)."""
+    humans, reactive, num_humans, shift = scenario
+    name = record_name(planner, regions, humans, episodes, seed, reactive, num_humans, shift)
+    path = out / f"{name}.json"
+    return {**described(planner, regions, scenario), **json.loads(path.read_text())
+            } if path.exists() else None
+
+
+def run(planner: str, regions: str, scenario: tuple, episodes: int, seed: int, out) -> dict:
+    record = found(planner, regions, scenario, episodes, seed, out)
+    if record is not None:
+        return record
+    humans, reactive, num_humans, shift = scenario
     discs = None if regions == "none" else Regions(regions, 0.1)
-    predictor = load_model(MODEL) if planner == "mpc" else CONSTANT_VELOCITY
-    env, params = CrowdNav.with_predictor(predictor, regions=discs,
-                                          human_policy=humans.replace("-", "_"))
+    predictor = PLANNERS[planner] or load_model(MODEL)
+    env, params = CrowdNav.with_predictor(predictor, num_humans, discs,
+                                          humans.replace("-", "_"), reactive, shift)
     mpc = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
-    return evaluate(env, params, mpc, episodes, seed, out, {
-        "planner": planner, "regions": regions, "alpha": 0.1, "humans": humans,
-        "model": MODEL if planner == "mpc" else None})
+    return evaluate(env, params, mpc, episodes, seed, out,
+                    described(planner, regions, scenario))
 
 
 def success_half_width(success: list[float], episodes: int) -> tuple[float, float]:
@@ -91,20 +131,97 @@ def among_social_force(rows: list[dict], episodes: int) -> str:
             f"their half-width of {half:.3f}.")
 
 
+def difference(a: dict, b: dict, episodes: int) -> tuple[float, float]:
+    """a's success rate minus b's and the 95 % half-width of that difference (the two rates
+    treated as independent binomials: conservative, since the episodes are the same)."""
+    variance = sum(r["success"] * (1 - r["success"]) / episodes for r in (a, b))
+    return a["success"] - b["success"], 1.96 * math.sqrt(variance)
+
+
+def scenario_name(scenario: tuple) -> str:
+    humans, reactive, num_humans, shift = scenario
+    return ", ".join([f"{num_humans} {'social force' if humans == 'social-force' else 'ORCA'}",
+                      "reactive" if reactive else "ignoring the robot",
+                      *([{SPEED_SHIFT: "1.5x faster from 6 s",
+                          POLICY_SHIFT: "ORCA to social force at 6 s"}[shift]]
+                        if shift != NO_SHIFT else [])])
+
+
+def matrix_table(rows: list[dict], episodes: int) -> str:
+    """Issue 75's rows: scenario, predictor, discs, success with its 95 % half-width, the
+    other measures."""
+    lines = ["| humans | predictor | discs | success | collision | timeout | intrusion_ratio | "
+             "navigation_time_s | mean_radius_m |", "|---" * 9 + "|"]
+    for row in rows:
+        half = 1.96 * math.sqrt(row["success"] * (1 - row["success"]) / episodes)
+        lines.append(f"| {scenario_name(scenario_of(row))} | {row['predictor']} | "
+                     f"{'DtACI 0.1' if row['regions'] == 'dtaci' else 'none'} | "
+                     f"{row['success']:.3f} ± {half:.3f} | {row['collision']:.3f} | "
+                     f"{row['timeout']:.3f} | {row['intrusion_ratio']:.3f} | "
+                     f"{row['navigation_time_s']:.2f} | {row['mean_radius_m']:.3f} |")
+    return "\n".join(lines)
+
+
+def scenario_of(row: dict) -> tuple:
+    return (row["humans"], row["reactive"], row["num_humans"], row["shift"])
+
+
+def answers(rows: list[dict], episodes: int) -> list[str]:
+    """Per scenario with all its rows: GST + discs against CV + discs, and the truth's."""
+    lines = []
+    for scenario in SCENARIOS:
+        cell = {(r["predictor"], r["regions"]): r for r in rows if scenario_of(r) == scenario}
+        if len(cell) < 8:
+            continue
+        gst, gst_half = difference(cell["gst", "dtaci"], cell["cv", "dtaci"], episodes)
+        truth, truth_half = difference(cell["truth", "dtaci"], cell["cv", "dtaci"], episodes)
+        verdict = lambda d, h: "beyond" if abs(d) > h else "within"
+        lines.append(f"- {scenario_name(scenario)}: GST + discs - CV + discs {gst:+.3f} "
+                     f"(half-width {gst_half:.3f}: {verdict(gst, gst_half)}); truth + discs - "
+                     f"CV + discs {truth:+.3f} ({truth_half:.3f}: {verdict(truth, truth_half)}).")
+    return lines
+
+
+def readings(default: list[dict], episodes: int) -> list[str]:
+    """`reading` and `among_social_force` of issue 60's rows, where all of them are made."""
+    orca = [r for r in default if r["humans"] == "orca"]
+    social_force = [r for r in default if r["humans"] != "orca"]
+    if (len(orca), len(social_force)) != (4, 2):
+        return []
+    return [reading(orca, episodes) + " " + among_social_force(social_force, episodes), ""]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--seed", type=int, default=1000)
+    parser.add_argument("--tabulate", action="store_true", help="run nothing: tabulate the "
+                        "records the output folder holds and name the configurations missing")
     add_results_flags(parser, "navigation", "the records and navigation.md", runs=False)
     args = parser.parse_args()
     out = results_folder(args)
     out.mkdir(parents=True, exist_ok=True)
     runs = out / "runs" / "navigation" if args.publish else out
     runs.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for planner, regions, humans in CONFIGURATIONS:
-        row = {**run(planner, regions, humans, args.episodes, args.seed, runs), "humans": humans}
-        rows.append({**row, "label": row_label(row)})
+    rows, missing, seconds = [], [], []
+    everything = CONFIGURATIONS + MATRIX
+    for done, (planner, regions, scenario) in enumerate(everything):
+        record = found(planner, regions, scenario, args.episodes, args.seed, runs)
+        if record is None and not args.tabulate:
+            started = time.perf_counter()
+            record = run(planner, regions, scenario, args.episodes, args.seed, runs)
+            seconds.append(time.perf_counter() - started)
+            left = sum(found(*c, args.episodes, args.seed, runs) is None for c in everything)
+            print(f"[{done + 1}/{len(everything)}] {row_label(record)}: success "
+                  f"{record['success']:.3f}, {seconds[-1]:.0f} s; {left} left, about "
+                  f"{left * sum(seconds) / len(seconds) / 3600:.1f} h at this pace", flush=True)
+        if record is None:
+            missing.append(f"{planner} {regions} ({scenario_name(scenario)})")
+            continue
+        rows.append({**record, "label": row_label(record)})
+    default = [r for r in rows[:len(CONFIGURATIONS)] if not r["reactive"] and r["num_humans"]
+               == 20 and r["shift"] == NO_SHIFT]
+    matrix = [r for r in rows if r not in default]
     published = rows + [{"label": f"{name} | | | ORCA", **figures}
                         for name, figures in CROWDNAV]
     text = "\n".join([
@@ -116,16 +233,28 @@ def main() -> None:
         "docs/navigation.md. Navigation time over the successful episodes, path "
         "length over all, intrusion ratio: the share of an episode's steps in which a human's "
         "next 5 positions come within 0.6 m of the robot; mean radius: of the discs the "
-        "planner was given.", "", format_table(published), "",
-        reading([row for row in rows if row["humans"] == "orca"], args.episodes) + " "
-        + among_social_force([row for row in rows if row["humans"] != "orca"], args.episodes),
-        "",
+        "planner was given.", "",
+        format_table(default + published[len(rows):]), "",
+        *readings(default, args.episodes),
         "CrowdNav++'s rows are its released test logs (its RL policy with GST, trained over "
         "20 M steps; 500 episodes of its own simulator, whose rules this environment follows "
         "but for the four differences of docs/navigation.md), not runs here: other episodes. "
         "ICP (tedhuang96/icp, WAFR 2024) publishes no results in its repository and its "
         "paper's table could not be read here; its simulator differs (5-10 humans who react "
-        "to the robot, radius 0.4 m).", ""])
+        "to the robot, radius 0.4 m).", "",
+        "## When would a predictor help? Humans who react, crowds, shifts (issue 75)", "",
+        "The same planner against four predictors: none (people standing where they are), "
+        "constant velocity (cv), GST (crowdnav_sj_rand) and the simulator's own next positions "
+        "(truth: every human moved on by the environment's rules with its goal kept and the "
+        "robot at its velocity; exact but for goal changes and replaced humans, so no "
+        "predictor can do better), each with DtACI discs (alpha 0.1) and without. Reactive "
+        "humans see the robot as one more agent (CrowdNav++'s `robot.visible`); a shift begins "
+        "6 s into every episode. ± is the binomial 95 % half-width of the success rate.", "",
+        matrix_table(matrix, args.episodes), "",
+        "Success differences (half-width of the difference, the rates taken as independent):",
+        "", *answers(matrix, args.episodes), "",
+        *([f"Not yet run ({len(missing)}): " + "; ".join(missing) + ".", ""] if missing
+          else [])])
     (out / "navigation.md").write_text(text)
     (out / "navigation.json").write_text(json.dumps(published, indent=1) + "\n")
     print(text)
