@@ -2,14 +2,10 @@
 
     python -m gst_jax.navigate evaluate --planner mpc --episodes 500 --gif 3
 
-A planner in `gst_jax.simulate.environment.CrowdNav` (CrowdNav++'s default task) over many
-episodes, --chunk at a time in one jitted program; CrowdNav++'s and ICP's measures as a table.
-mpc plans against GST's predictions (--model) inflated by conformal radii (--regions),
-cv-mpc against constant-velocity ones, standing-mpc against people standing where they are
-(no predictor), truth-mpc against the simulator's own next positions (an upper bound);
---humans: CrowdNav++'s ORCA or social force, --reactive: they see the robot, --shift: they
-change midway. Episodes are seeded from 1000 (CrowdNav++'s test offset); the planner's
-settings were chosen on seed 1.
+A planner in `gst_jax.simulate.environment.CrowdNav` (CrowdNav++'s default task, or humans
+who see the robot, more or fewer, or changing midway) over many episodes, --chunk at a time
+in one jitted program; CrowdNav++'s and ICP's measures as a table. Episodes are seeded from
+1000 (CrowdNav++'s test offset); the planner's settings were chosen on seed 1.
 """
 
 from __future__ import annotations
@@ -18,14 +14,12 @@ import json
 from pathlib import Path
 
 from gst_jax import cli
-from gst_jax.errors import RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import (NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT, CrowdNav,
-                                          EnvParams)
-from gst_jax.simulate.navigation import CHUNK, PLANNERS, evaluate, predictor_of, summary
+from gst_jax.simulate.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT, EnvParams
+from gst_jax.simulate.navigation import (CHUNK, PLANNERS, described_run, environment_for,
+                                         evaluate, summary)
 from gst_jax.simulate.planner import SamplingMPC
-from gst_jax.stream import Regions
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -43,14 +37,11 @@ def main(argv: list[str] | None = None) -> None:
     add("--alpha", type=cli.open_fraction, default=0.1, help="their miscoverage (default 0.1)")
     add("--humans", choices=("orca", "social-force"), default="orca", help="how the humans "
         "walk: CrowdNav++'s ORCA (default) or its social force")
-    add("--reactive", action="store_true", help="the humans see the robot and give way to it "
-        "(CrowdNav++'s robot.visible; default: they ignore it)")
-    add("--num-humans", type=cli.positive_int, default=20, help="humans in the scene "
-        "(default: 20)")
-    add("--shift", choices=(NO_SHIFT, SPEED_SHIFT, POLICY_SHIFT), default=NO_SHIFT,
-        help=f"from {EnvParams.shift_at_s:g} s into each episode the humans walk "
-        f"{EnvParams.speed_factor:g}x faster (speed) or ORCA humans switch to social force "
-        "(policy) (default: none)")
+    add("--reactive", action="store_true", help="the humans see the robot (robot.visible)")
+    add("--num-humans", type=cli.positive_int, default=20, help="humans (default: 20)")
+    add("--shift", choices=(NO_SHIFT, SPEED_SHIFT, POLICY_SHIFT), default=NO_SHIFT, help=f"from "
+        f"{EnvParams.shift_at_s:g} s on, humans {EnvParams.speed_factor:g}x faster (speed) or "
+        "ORCA ones by social force (policy) (default: none)")
     add("--episodes", type=cli.positive_int, default=500, help="episodes (default: 500)")
     add("--plans", type=cli.at_least(SamplingMPC.fixed_plans, "the planner's fixed plans"),
         default=256, help="plans scored per step (default: 256)")
@@ -65,21 +56,13 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def navigate(args) -> None:
-    regions = None if args.regions == "none" else Regions(args.regions, args.alpha)
-    predictor = PLANNERS[args.planner] or load_model(args.model)
-    if args.shift == POLICY_SHIFT and args.humans != "orca":
-        raise RunError("--shift policy switches ORCA humans to social force: it needs "
-                             "--humans orca")
-    env, params = CrowdNav.with_predictor(predictor, args.num_humans, regions,
-                                          args.humans.replace("-", "_"), args.reactive,
-                                          args.shift)
+    described = described_run(args.planner, args.regions, args.alpha, args.humans,
+                              args.reactive, args.num_humans, args.shift, args.model)
+    env, params = environment_for(described, args.planner == "mpc" and load_model(args.model))
     planner = SamplingMPC(num_plans=args.plans, horizon=env.pred_len, step_s=params.step_s)
-    result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir), {
-        "planner": args.planner, "predictor": predictor_of(args.planner),
-        "regions": args.regions, "alpha": args.alpha, "humans": args.humans,
-        "reactive": args.reactive, "num_humans": args.num_humans, "shift": args.shift,
-        "model": args.model if args.planner == "mpc" else None}, args.gif,
-        overwrite=args.overwrite, chunk=args.chunk, progress=Progress())
+    result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir),
+                      described, args.gif, overwrite=args.overwrite, chunk=args.chunk,
+                      progress=Progress())
     print(json.dumps(result, indent=2) if args.json else summary(result))
 
 

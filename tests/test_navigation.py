@@ -159,9 +159,11 @@ def test_a_ppo_from_rejax_trains_in_the_environment():
 
 
 def test_the_experiment_tabulates_its_records_without_running_them_again(tmp_path, monkeypatch):
+    """Issue 60's records tabulated as before; with --tabulate, issue 75's configurations
+    that have no record are listed, not run."""
     import navigation as experiment
 
-    for planner, regions, humans in experiment.CONFIGURATIONS:
+    for planner, regions, (humans, *_) in experiment.CONFIGURATIONS:
         # Social-force rows with other figures: the reading must leave them out.
         orca = humans == "orca"
         record = {"planner": planner, "regions": regions, "alpha": 0.1,
@@ -173,7 +175,7 @@ def test_the_experiment_tabulates_its_records_without_running_them_again(tmp_pat
                   "mean_radius_m": 0.2}
         name = f"{planner}-{regions}{'' if orca else '-' + humans}-episodes500-seed1000.json"
         (tmp_path / name).write_text(json.dumps(record))
-    monkeypatch.setattr("sys.argv", ["navigation.py", "--workdir", str(tmp_path)])
+    monkeypatch.setattr("sys.argv", ["navigation.py", "--workdir", str(tmp_path), "--tabulate"])
     experiment.main()
     text = (tmp_path / "navigation.md").read_text()
     assert "| sampling MPC | constant velocity | none | ORCA | 0.900 | 0.100 |" in text
@@ -181,7 +183,12 @@ def test_the_experiment_tabulates_its_records_without_running_them_again(tmp_pat
     assert "four planners' success rates span 0.000" in text
     assert "social-force humans the two planners' success rates (0.500, 0.500)" in text
     assert "change the intrusion ratio by -50 % and the navigation time by +1.0 s" in text
-    assert len(json.loads((tmp_path / "navigation.json").read_text())) == 8
+    published = json.loads((tmp_path / "navigation.json").read_text())
+    assert len(published) == 8 and all(row.get("reactive") is False for row in published[:6])
+    # The default scenario's GST and CV rows are issue 60's, in the matrix's table too.
+    assert "| 20 ORCA, ignoring the robot | cv | none | 0.900 ± 0.026 |" in text
+    missing = len(experiment.MATRIX) - 4
+    assert f"Not yet run ({missing}): truth-mpc dtaci (20 ORCA, ignoring the robot)" in text
 
 
 def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_make(

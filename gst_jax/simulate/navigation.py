@@ -25,11 +25,12 @@ import numpy as np
 
 from gst_jax.errors import RunError
 from gst_jax.progress import Progress
-from gst_jax.simulate.environment import (COLLISION, CONSTANT_VELOCITY, NO_SHIFT, REACH_GOAL,
-                                          STANDING, TIMEOUT, TRUTH, CrowdNav, EnvParams,
-                                          Observation)
+from gst_jax.simulate.environment import (COLLISION, CONSTANT_VELOCITY, NO_SHIFT, POLICY_SHIFT,
+                                          REACH_GOAL, STANDING, TIMEOUT, TRUTH, CrowdNav,
+                                          EnvParams, Observation)
 from gst_jax.simulate.figures import animate_navigation
 from gst_jax.simulate.planner import PlannerState, SamplingMPC
+from gst_jax.stream import Regions
 
 # A planner: (key, its state, observation) -> (velocity (2,), its next state).
 Planner = Callable[[jax.Array, PlannerState, Observation], tuple[jax.Array, PlannerState]]
@@ -42,9 +43,29 @@ PLANNERS = {"mpc": None, "cv-mpc": CONSTANT_VELOCITY, "standing-mpc": STANDING,
 PREDICTORS = {"mpc": "gst", "cv-mpc": "cv", "standing-mpc": "none", "truth-mpc": "truth"}
 
 
-def predictor_of(planner: str) -> str:
-    """A planner's predictor as records name it: gst, cv, none (people standing) or truth."""
-    return PREDICTORS[planner]
+def described_run(planner: str, regions: str, alpha: float = 0.1, humans: str = "orca",
+                  reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT,
+                  model: str | None = None) -> dict:
+    """What names an evaluation and its record (`evaluate`'s `described`): the planner, its
+    predictor as records name it (gst, cv, none: people standing, truth), the discs, the
+    humans (`humans` "orca" or "social-force"), and GST's model for planner mpc."""
+    if shift == POLICY_SHIFT and humans != "orca":
+        raise RunError("--shift policy switches ORCA humans to social force: it needs "
+                       "--humans orca")
+    return {"planner": planner, "predictor": PREDICTORS[planner], "regions": regions,
+            "alpha": alpha, "humans": humans, "reactive": reactive, "num_humans": num_humans,
+            "shift": shift, "model": model if planner == "mpc" else None}
+
+
+def environment_for(described: dict, gst=None) -> tuple[CrowdNav, EnvParams]:
+    """The environment a described evaluation plays; `gst`: the loaded model for planner
+    mpc."""
+    regions = (None if described["regions"] == "none" else
+               Regions(described["regions"], described["alpha"]))
+    return CrowdNav.with_predictor(PLANNERS[described["planner"]] or gst,
+                                   described["num_humans"], regions,
+                                   described["humans"].replace("-", "_"),
+                                   described["reactive"], described["shift"])
 
 
 def max_steps(params: EnvParams) -> int:
