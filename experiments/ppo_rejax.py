@@ -4,11 +4,16 @@ adapter below (a flat observation, gymnax's spaces, rejax's max_steps_in_episode
 
     pip install ".[rl]"            # rejax and gymnax: the rl extra
     python experiments/ppo_rejax.py --timesteps 2000000 --envs 64
+    python experiments/ppo_rejax.py --timesteps 20000000 --chunk 500000 --episodes 100 \
+        --workdir runs/ppo                       # a learning curve, resumable
 
-The whole training (environments, GST, PPO's updates) is one jitted program. This is the
-example, not CrowdNav++'s RL training (its recurrent attention policy over 20 M steps): it
-reports the mean return of the last rollouts and, with --episodes, CrowdNav++'s measures of
-the trained policy (`gst_jax.simulate.navigation`).
+The whole training (environments, GST with DtACI discs, PPO's updates) is one jitted program.
+This is the example, not CrowdNav++'s RL training (its recurrent attention policy over 20 M
+steps): it reports the seconds it took and, with --episodes, CrowdNav++'s measures of the
+trained policy (`gst_jax.simulate.navigation`). With --chunk, the program trains --chunk
+steps at a time and after each measures the policy over --episodes test episodes, appending
+a point of the learning curve to <workdir>/curve.jsonl and saving the training state beside
+it (state.msgpack), from which a rerun continues; it says when success first reached 0.9.
 """
 
 from __future__ import annotations
@@ -16,13 +21,15 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import sys
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
-from flax import struct
+from flax import serialization, struct
 
 from gst_jax.runs import load_model
 from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams, Observation
@@ -81,10 +88,8 @@ def environment(predictor: str, humans: int) -> tuple[CrowdNav, EnvParams]:
     return CrowdNav.with_predictor(model, humans, Regions("dtaci", 0.1) if model else None)
 
 
-def train(predictor: str = "gst", humans: int = 20, timesteps: int = 100_000, envs: int = 64,
-          steps: int = 64, seed: int = 0) -> tuple[PPO, object, dict]:
-    """rejax's PPO for `timesteps` environment steps: (the algorithm, its train state, what
-    the training showed: the mean reward per step over its last rollout and the seconds)."""
+def ppo(predictor: str, humans: int, timesteps: int, envs: int, steps: int = 64) -> PPO:
+    """rejax's PPO over `timesteps` environment steps (one call of its `train`)."""
     from rejax import PPO
 
     env, params = environment(predictor, humans)
@@ -93,10 +98,71 @@ def train(predictor: str = "gst", humans: int = 20, timesteps: int = 100_000, en
                       num_minibatches=4, eval_freq=timesteps, skip_initial_evaluation=True,
                       learning_rate=3e-4, normalize_observations=True)
     # rejax's own evaluation plays 128 full episodes; the measures below replace it.
-    algo = algo.replace(eval_callback=lambda algo, ts, rng: ())
+    return algo.replace(eval_callback=lambda algo, ts, rng: ())
+
+
+def train(predictor: str = "gst", humans: int = 20, timesteps: int = 100_000, envs: int = 64,
+          steps: int = 64, seed: int = 0) -> tuple[PPO, object, dict]:
+    """rejax's PPO for `timesteps` environment steps: (the algorithm, its train state, what
+    the training took: seconds)."""
+    algo = ppo(predictor, humans, timesteps, envs, steps)
     started = time.perf_counter()
     train_state, _ = jax.block_until_ready(jax.jit(algo.train)(jax.random.key(seed)))
     return algo, train_state, {"seconds": time.perf_counter() - started}
+
+
+def learning_curve(workdir: Path, predictor: str = "gst", humans: int = 20,
+                   timesteps: int = 20_000_000, chunk: int = 500_000, envs: int = 64,
+                   episodes: int = 100, seed: int = 0) -> list[dict]:
+    """PPO `chunk` steps at a time up to `timesteps`, the policy measured after each chunk
+    over `episodes` test episodes: the points of <workdir>/curve.jsonl (steps, hours of
+    training so far, CrowdNav++'s measures). Continues from <workdir>/state.msgpack."""
+    algo = ppo(predictor, humans, chunk, envs)
+    step = jax.jit(lambda ts: algo.train(train_state=ts)[0])
+    state_path, curve_path = workdir / "state.msgpack", workdir / "curve.jsonl"
+    ts = algo.init_state(jax.random.key(seed))
+    curve = []
+    if state_path.exists():
+        ts = _with_keys(ts, serialization.from_bytes(_key_data(ts), state_path.read_bytes()))
+        curve = [json.loads(line) for line in curve_path.read_text().splitlines()]
+    workdir.mkdir(parents=True, exist_ok=True)
+    while int(ts.global_step) < timesteps:
+        started = time.perf_counter()
+        ts = jax.block_until_ready(step(ts))
+        hours = (curve[-1]["hours"] if curve else 0.0) + (time.perf_counter() - started) / 3600
+        point = {"steps": int(ts.global_step), "hours": round(hours, 4),
+                 **measure(algo, ts, episodes)}
+        curve.append(point)
+        # The state first, then the point: a crash between them repeats a chunk, never skips.
+        temporary = state_path.with_suffix(".tmp")
+        temporary.write_bytes(serialization.to_bytes(_key_data(ts)))
+        os.replace(temporary, state_path)
+        with curve_path.open("a") as f:
+            f.write(json.dumps(point) + "\n")
+        left = (timesteps - point["steps"]) / point["steps"] * hours
+        print(f"{point['steps']:,} steps, {hours:.2f} h: success {point['success']:.3f}, "
+              f"collision {point['collision']:.3f}; about {left:.1f} h left", flush=True)
+    return curve
+
+
+def _is_key(leaf) -> bool:
+    return hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key)
+
+
+def _key_data(tree):
+    """The tree with its PRNG keys as their raw data (msgpack takes no key arrays)."""
+    return jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, tree)
+
+
+def _with_keys(like, plain):
+    """`plain` (from `_key_data`) with the keys of `like` wrapped back."""
+    return jax.tree.map(lambda template, x: jax.random.wrap_key_data(
+        x, impl=jax.random.key_impl(template)) if _is_key(template) else x, like, plain)
+
+
+def first_reaching(curve: list[dict], success: float = 0.9) -> dict | None:
+    """The first point of a learning curve whose success rate reached `success`."""
+    return next((point for point in curve if point["success"] >= success), None)
 
 
 def measure(algo: PPO, train_state, episodes: int, seed: int = 1000) -> dict:
@@ -126,13 +192,24 @@ def main() -> None:
     parser.add_argument("--humans", type=int, default=20)
     parser.add_argument("--timesteps", type=int, default=100_000)
     parser.add_argument("--envs", type=int, default=64)
-    parser.add_argument("--episodes", type=int, default=0)
+    parser.add_argument("--episodes", type=int, default=0, help="test episodes measured at the "
+                        "end (with --chunk: after each chunk)")
+    parser.add_argument("--chunk", type=int, default=0, help="train this many steps at a time, "
+                        "a learning curve in --workdir (default: all at once)")
+    parser.add_argument("--workdir", type=Path, default=Path("runs/ppo"),
+                        help="where --chunk keeps the curve and the state (default: runs/ppo)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     missing = [name for name in ("rejax", "gymnax") if importlib.util.find_spec(name) is None]
     if missing:
         sys.exit(f"error: experiments/ppo_rejax.py needs {' and '.join(missing)}, the rl extra: "
                  'pip install ".[rl]" (from the checkout)')
+    if args.chunk:
+        curve = learning_curve(args.workdir, args.predictor, args.humans, args.timesteps,
+                               args.chunk, args.envs, args.episodes or 100, args.seed)
+        print(json.dumps({"points": len(curve), "last": curve[-1],
+                          "first_at_0.9_success": first_reaching(curve)}, indent=1))
+        return
     algo, train_state, report = train(args.predictor, args.humans, args.timesteps, args.envs,
                                       seed=args.seed)
     if args.episodes:

@@ -158,6 +158,23 @@ def test_a_ppo_from_rejax_trains_in_the_environment():
     assert measures["success"] + measures["collision"] + measures["timeout"] == 1.0
 
 
+def test_the_ppo_learning_curve_continues_from_its_saved_state(tmp_path):
+    """--chunk: a point of the curve per chunk, the state saved beside it; a rerun with more
+    steps continues from it (the points before are kept, the steps go on)."""
+    pytest.importorskip("rejax")
+    import ppo_rejax
+
+    settings = dict(predictor="none", humans=2, chunk=1024, envs=8, episodes=2)
+    first = ppo_rejax.learning_curve(tmp_path, timesteps=1024, **settings)
+    curve = ppo_rejax.learning_curve(tmp_path, timesteps=2048, **settings)
+    assert [point["steps"] for point in curve] == [1024, 2048]
+    # (as JSON: a policy that never arrives has a NaN navigation time)
+    assert json.dumps(curve[0]) == json.dumps(first[0]) and curve[1]["hours"] > curve[0]["hours"]
+    assert (tmp_path / "curve.jsonl").read_text().splitlines() == [json.dumps(p) for p in curve]
+    assert ppo_rejax.first_reaching([{"success": 0.5}, {"success": 0.91}, {"success": 0.95}]
+                                    ) == {"success": 0.91}
+
+
 def test_the_experiment_tabulates_its_records_without_running_them_again(tmp_path, monkeypatch):
     """Issue 60's records tabulated as before; with --tabulate, issue 75's configurations
     that have no record are listed, not run."""
