@@ -38,8 +38,9 @@ each human where it stands (STANDING: a planner without a predictor) or are the 
 own next positions (TRUTH: every human moved on by the rules above, its goal kept, the robot
 at its velocity; exact but for goal changes and replaced humans, an upper bound on what any
 predictor can give), for the humans detected at both of the last two steps; without a model
-the observation carries the current positions only (CrowdNav++'s no-prediction task). With `regions`, each predicted
-step also gets a conformal radius (`gst_jax.stream.Regions`), scored as the humans move on.
+the observation carries the current positions only (CrowdNav++'s no-prediction task). With
+`regions`, each predicted step also gets a conformal radius (`gst_jax.stream.Regions`),
+scored as the humans move on.
 
 A distribution shift (`shift`), from `EnvParams.shift_at_s` into every episode: SPEED_SHIFT
 makes every human faster by `speed_factor` (preferred and top speed), POLICY_SHIFT switches
@@ -399,7 +400,7 @@ def social_force_velocities(state: EnvState, params: EnvParams, reactive: bool =
     if reactive:
         others = jnp.concatenate([others, state.robot_position[None]])
         others_radius = jnp.concatenate([others_radius, jnp.array([params.robot_radius])])
-    offsets = state.human_position[:, None] - others[None]                         # [i, j] p_i - p_j
+    offsets = state.human_position[:, None] - others[None]               # [i, j] p_i - p_j
     apart = jnp.linalg.norm(offsets, axis=-1)
     strength = params.force_strength * jnp.exp(
         (state.human_radius[:, None] + others_radius[None] - apart) / params.force_range)
