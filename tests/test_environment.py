@@ -255,9 +255,9 @@ def _walk_at_the_robot(env: CrowdNav, steps: int = 40) -> float:
     state = _state(humans=[(-3.0, 0.02)]).replace(
         human_goal=jnp.asarray([[3.0, 0.02]] + [[FAR + 10 * i, FAR] for i in range(1, 4)]),
         human_v_pref=jnp.ones(4))
-    closest = np.inf
+    closest, velocities = np.inf, jax.jit(env.human_velocities)
     for _ in range(steps):
-        velocity = env.human_velocities(state, PARAMS)
+        velocity = velocities(state, PARAMS)
         state = state.replace(human_position=state.human_position + velocity * PARAMS.step_s,
                               human_velocity=velocity)
         closest = min(closest, float(jnp.linalg.norm(state.human_position[0])))
