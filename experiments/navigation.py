@@ -86,7 +86,7 @@ def run(planner: str, regions: str, scenario: tuple, episodes: int, seed: int, o
     if record is not None:
         return record
     fields = described(planner, regions, scenario)
-    env, params = environment_for(fields, planner == "mpc" and load_model(MODEL))
+    env, params = environment_for(fields, load_model(MODEL) if planner == "mpc" else None)
     mpc = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
     return evaluate(env, params, mpc, episodes, seed, out, fields)
 
@@ -148,7 +148,7 @@ def matrix_table(rows: list[dict], episodes: int) -> str:
     lines = ["| humans | predictor | discs | success | collision | timeout | intrusion_ratio | "
              "navigation_time_s | mean_radius_m |", "|---" * 9 + "|"]
     for row in rows:
-        half = 1.96 * math.sqrt(row["success"] * (1 - row["success"]) / episodes)
+        _, half = success_half_width([row["success"]], episodes)
         lines.append(f"| {scenario_name(scenario_of(row))} | {row['predictor']} | "
                      f"{'DtACI 0.1' if row['regions'] == 'dtaci' else 'none'} | "
                      f"{row['success']:.3f} ± {half:.3f} | {row['collision']:.3f} | "

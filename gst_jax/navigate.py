@@ -58,11 +58,11 @@ def main(argv: list[str] | None = None) -> None:
 def navigate(args) -> None:
     described = described_run(args.planner, args.regions, args.alpha, args.humans,
                               args.reactive, args.num_humans, args.shift, args.model)
-    env, params = environment_for(described, args.planner == "mpc" and load_model(args.model))
+    gst = load_model(args.model) if args.planner == "mpc" else None
+    env, params = environment_for(described, gst)
     planner = SamplingMPC(num_plans=args.plans, horizon=env.pred_len, step_s=params.step_s)
-    result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir),
-                      described, args.gif, overwrite=args.overwrite, chunk=args.chunk,
-                      progress=Progress())
+    result = evaluate(env, params, planner, args.episodes, args.seed, Path(args.workdir), described,
+                      args.gif, overwrite=args.overwrite, chunk=args.chunk, progress=Progress())
     print(json.dumps(result, indent=2) if args.json else summary(result))
 
 

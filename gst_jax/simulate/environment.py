@@ -351,15 +351,15 @@ class CrowdNav:
         now = state.human_position
         if isinstance(self.model, StreamModel):
             predict_key, key = jax.random.split(key)
+        standing = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
         if self.model is None or fresh:
-            futures = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
-            predicted = jnp.zeros_like(predicted)
+            futures, predicted = standing, jnp.zeros_like(predicted)
         elif self.model == CONSTANT_VELOCITY:
             last = tracks.positions[:, -1] - tracks.positions[:, -2]
             steps = jnp.arange(1, self.pred_len + 1)[:, None]
             futures = now[:, None] + steps * last[:, None]
         elif self.model == STANDING:
-            futures = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
+            futures = standing
         elif self.model == TRUTH:
             futures = self._truth(state, params)
         else:

@@ -36,11 +36,10 @@ from gst_jax.stream import Regions
 Planner = Callable[[jax.Array, PlannerState, Observation], tuple[jax.Array, PlannerState]]
 
 
-# The sampling MPC's variants by what it plans against: `CrowdNav`'s model (None: GST's,
-# loaded from --model), and the name of that predictor in records.
-PLANNERS = {"mpc": None, "cv-mpc": CONSTANT_VELOCITY, "standing-mpc": STANDING,
-            "truth-mpc": TRUTH}
-PREDICTORS = {"mpc": "gst", "cv-mpc": "cv", "standing-mpc": "none", "truth-mpc": "truth"}
+# The sampling MPC's variants by what it plans against: (`CrowdNav`'s model, None for GST's,
+# loaded from --model; the name of that predictor in records).
+PLANNERS = {"mpc": (None, "gst"), "cv-mpc": (CONSTANT_VELOCITY, "cv"),
+            "standing-mpc": (STANDING, "none"), "truth-mpc": (TRUTH, "truth")}
 
 
 def described_run(planner: str, regions: str, alpha: float = 0.1, humans: str = "orca",
@@ -52,7 +51,7 @@ def described_run(planner: str, regions: str, alpha: float = 0.1, humans: str = 
     if shift == POLICY_SHIFT and humans != "orca":
         raise RunError("--shift policy switches ORCA humans to social force: it needs "
                        "--humans orca")
-    return {"planner": planner, "predictor": PREDICTORS[planner], "regions": regions,
+    return {"planner": planner, "predictor": PLANNERS[planner][1], "regions": regions,
             "alpha": alpha, "humans": humans, "reactive": reactive, "num_humans": num_humans,
             "shift": shift, "model": model if planner == "mpc" else None}
 
@@ -62,7 +61,7 @@ def environment_for(described: dict, gst=None) -> tuple[CrowdNav, EnvParams]:
     mpc."""
     regions = (None if described["regions"] == "none" else
                Regions(described["regions"], described["alpha"]))
-    return CrowdNav.with_predictor(PLANNERS[described["planner"]] or gst,
+    return CrowdNav.with_predictor(PLANNERS[described["planner"]][0] or gst,
                                    described["num_humans"], regions,
                                    described["humans"].replace("-", "_"),
                                    described["reactive"], described["shift"])
