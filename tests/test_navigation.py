@@ -1,4 +1,4 @@
-"""Planners in CrowdNav++'s task (gst_jax.simulate.planner, navigation; python -m
+"""Planners in CrowdNav++'s task (gst_jax.simulate.crowdnav.planner, navigation; python -m
 gst_jax.navigate): the MPC's choice on a crafted observation, the measures on crafted
 episodes, and the command end to end on a few episodes."""
 
@@ -15,11 +15,11 @@ from gst_jax import navigate
 from gst_jax.errors import RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL, CrowdNav,
-                                          EnvParams, Observation)
-from gst_jax.simulate.navigation import (episode_measures, max_steps, navigation_measures,
-                                         record_name, row_label, run_episodes, summary)
-from gst_jax.simulate.planner import SamplingMPC
+from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL,
+                                                   CrowdNav, EnvParams, Observation)
+from gst_jax.simulate.crowdnav.navigation import (episode_measures, max_steps, navigation_measures,
+                                                  record_name, row_label, run_episodes, summary)
+from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.stream import Regions
 
 
@@ -98,9 +98,12 @@ def test_the_command_reports_crowdnavs_measures(tmp_path, capsys):
 
 def test_episodes_in_chunks_are_those_of_one_program():
     """--episodes 1000000 ran out of memory: episodes run `chunk` at a time through one
-    program (the last chunk padded), each from its own key, so that a chunked run gives
-    every array of an unchunked one, bit for bit; progress counts the chunks. The chunks
-    are the command's program above (from the persistent cache); one program of 3."""
+    program (the last chunk padded), each from its own key, so that a chunked run plays
+    the episodes of an unchunked one: the same outcomes and steps, positions within
+    XLA:CPU's rounding, which the number of lanes changes (by up to 1.4 mm at its default
+    level and with the suite's fusion emitters; a lane playing another key would differ by
+    metres); progress counts the chunks. The chunks are the command's program above (from
+    the persistent cache); one program of 3."""
     env, params = CrowdNav.with_predictor(CONSTANT_VELOCITY, regions=Regions("dtaci", 0.1))
     planner = SamplingMPC(num_plans=66, horizon=env.pred_len, step_s=params.step_s)
     log = io.StringIO()
@@ -109,7 +112,10 @@ def test_episodes_in_chunks_are_those_of_one_program():
     whole, _, _ = run_episodes(env, params, planner, planner.init(), 3, seed=1000, keep=3)
     assert chunked.keys() == whole.keys() and whole["humans"].shape == (3, 198, 20, 2)
     for name, array in whole.items():
-        np.testing.assert_array_equal(chunked[name], array, err_msg=name)
+        if np.issubdtype(array.dtype, np.floating):
+            np.testing.assert_allclose(chunked[name], array, rtol=0, atol=2e-3, err_msg=name)
+        else:
+            np.testing.assert_array_equal(chunked[name], array, err_msg=name)
     assert [line.split(",")[0] for line in log.getvalue().splitlines()] == [
         "episodes 2/3", "episodes 3/3"]
 

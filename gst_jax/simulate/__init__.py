@@ -1,22 +1,27 @@
-"""Closed-loop multi-agent simulation driven by a trajectory predictor (the paper's Fig. 5).
+"""Closed-loop simulation of people and a robot: the paper's encounters and CrowdNav++'s task,
+moving their agents by one core.
 
-    scenarios.py  the four robot/human scenarios as initial states
-    loop.py       the jitted closed loop and the step models (constant velocity, GST)
-    measures.py   the robot's safety and efficiency, freezing and U-turn detection
-    figures.py    a run as a PNG and an animated GIF
-    study.py      every model on every scenario, with results.json
+    agents/     how agents move (the core both use): ORCA, social force, a holonomic body,
+                a trajectory predictor's first step
+    paper/      the paper's Fig. 5: scenarios, the jitted closed loop, random encounters,
+                measures, figures, the study (`python -m gst_jax.simulate`)
+    crowdnav/   CrowdNav++'s navigation task: the jittable environment, the sampling MPC
+                planner, episodes and their measures (`python -m gst_jax.navigate`)
+    crowds.py   synthetic crowds written as training data (numpy)
 
-`python -m gst_jax.simulate` is the command (`gst_jax/simulate/__main__.py`).
+Here: the paper's loop, its scenarios and measures.
 """
 
-from gst_jax.simulate.loop import StepModel, constant_velocity_model, gst_model, simulate
-from gst_jax.simulate.measures import (ROBOT_COLLISION_DISTANCE, freezing_or_u_turn,
-                                       robot_measures)
-from gst_jax.simulate.scenarios import (SCENARIOS, Scenario, boundary_wanderers, intersection,
-                                        late_crossing, oncoming_group)
+from gst_jax.simulate.agents.predicted import StepModel, constant_velocity_model, gst_model
+from gst_jax.simulate.paper.loop import MODEL_HUMANS, ORCA_HUMANS, simulate
+from gst_jax.simulate.paper.measures import (ROBOT_COLLISION_DISTANCE, freezing_or_u_turn,
+                                             robot_measures)
+from gst_jax.simulate.paper.scenarios import (SCENARIOS, Scenario, boundary_wanderers,
+                                              intersection, late_crossing, oncoming_group)
 
-__all__ = ["ROBOT_COLLISION_DISTANCE", "SCENARIOS", "Scenario", "StepModel",
-           "boundary_wanderers", "constant_velocity_model", "freezing_or_u_turn", "gst_model",
-           "intersection", "late_crossing", "oncoming_group", "robot_measures", "simulate",
-           # The modules of CrowdNav++'s task, pages of their own in the API reference.
-           "environment", "navigation", "planner"]
+__all__ = ["MODEL_HUMANS", "ORCA_HUMANS", "ROBOT_COLLISION_DISTANCE", "SCENARIOS", "Scenario",
+           "StepModel", "boundary_wanderers", "constant_velocity_model", "freezing_or_u_turn",
+           "gst_model", "intersection", "late_crossing", "oncoming_group", "robot_measures",
+           "simulate",
+           # The folders, pages of their own in the API reference.
+           "agents", "paper", "crowdnav"]

@@ -5,7 +5,8 @@
     python -m gst_jax.simulate pretrained:crowd_d --encounters 1000
 
 Every detected agent, the robot included, moves by the first displacement the model
-predicts; the table gives the robot's minimum distance, collisions, progress, path-length
+predicts (with --humans orca the people walk by ORCA instead, seeing the robot, as CrowdNav++'s
+reactive humans); the table gives the robot's minimum distance, collisions, progress, path-length
 ratio and whether it froze or turned back. One PNG (and, with --animate, a GIF) per run.
 With --encounters: rates over random encounters with 95 % intervals, and encounters.png.
 """
@@ -17,10 +18,11 @@ from pathlib import Path
 
 from gst_jax import cli
 from gst_jax.runs import load_model
-from gst_jax.simulate.encounters import format_encounters
-from gst_jax.simulate.scenarios import SCENARIOS
-from gst_jax.simulate.study import (format_markdown, run_encounter_study, run_scenarios,
-                                    step_models, time_grid)
+from gst_jax.simulate.paper.encounters import format_encounters
+from gst_jax.simulate.paper.loop import MODEL_HUMANS, ORCA_HUMANS
+from gst_jax.simulate.paper.scenarios import SCENARIOS
+from gst_jax.simulate.paper.study import (format_markdown, run_encounter_study, run_scenarios,
+                                          step_models, time_grid)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -37,8 +39,12 @@ def main(argv: list[str] | None = None) -> None:
                         help="comma-separated n to run each model with (traced; default: the "
                              "model's own)")
     parser.add_argument("--encounters", type=cli.positive_int, default=None, metavar="COUNT",
-                        help="instead, COUNT random encounters (gst_jax/simulate/encounters.py)"
-                             ", one program per model: rates with 95%% intervals")
+                        help="instead, COUNT random encounters (gst_jax/simulate/paper/"
+                             "encounters.py), one program per model: rates with 95%% intervals")
+    parser.add_argument("--humans", choices=(MODEL_HUMANS, ORCA_HUMANS), default=MODEL_HUMANS,
+                        help="how the people move: model, by the model's prediction as the "
+                        "robot (the paper's); orca, by ORCA along their lines, giving way to "
+                        "the robot (CrowdNav++'s reactive humans) (default: model)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the Gumbel samples (and "
                         "of the encounters)")
     parser.add_argument("--animate", action="store_true",
@@ -52,11 +58,13 @@ def simulate(args) -> None:
     runs = [load_model(spec) for spec in args.runs]
     models, out, grid = step_models(runs, args.edge_heads), Path(args.workdir), time_grid(runs)
     if args.encounters:
-        rows, _ = run_encounter_study(models, args.encounters, out, grid=grid, seed=args.seed)
+        rows, _ = run_encounter_study(models, args.encounters, out, grid=grid, seed=args.seed,
+                                      humans=args.humans)
         table, written = format_encounters(rows), "encounters.json and encounters.png"
     else:
         names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
-        rows = run_scenarios(models, names, out, grid=grid, seed=args.seed, animate=args.animate)
+        rows = run_scenarios(models, names, out, grid=grid, seed=args.seed, animate=args.animate,
+                             humans=args.humans)
         table = format_markdown(rows)
         written = f"results.json and one {'PNG and GIF' if args.animate else 'PNG'} per run"
     if args.json:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gst_jax.simulate.scenarios import Scenario
+from gst_jax.simulate.paper.scenarios import Scenario
 
 # A robot collides with a human whose centre comes closer than this (metres): a robot of
 # 0.3 m radius and a point human. Not `metrics.COLLISION_DISTANCE`, which is between two

@@ -25,11 +25,11 @@ import numpy as np
 
 from gst_jax.errors import RunError
 from gst_jax.progress import Progress
-from gst_jax.simulate.environment import (COLLISION, CONSTANT_VELOCITY, NO_SHIFT, POLICY_SHIFT,
-                                          REACH_GOAL, STANDING, TIMEOUT, TRUTH, CrowdNav,
-                                          EnvParams, Observation)
-from gst_jax.simulate.figures import animate_navigation
-from gst_jax.simulate.planner import PlannerState, SamplingMPC
+from gst_jax.simulate.crowdnav.environment import (COLLISION, CONSTANT_VELOCITY, NO_SHIFT,
+                                                   POLICY_SHIFT, REACH_GOAL, STANDING, TIMEOUT,
+                                                   TRUTH, CrowdNav, EnvParams, Observation)
+from gst_jax.simulate.crowdnav.figures import animate_navigation
+from gst_jax.simulate.crowdnav.planner import PlannerState, SamplingMPC
 from gst_jax.stream import Regions
 
 # A planner: (key, its state, observation) -> (velocity (2,), its next state).
@@ -122,9 +122,8 @@ def run_episodes(env: CrowdNav, params: EnvParams, planner: Planner, init: Plann
     seconds, run seconds). Arrays: `episode_measures` of every episode (E,), and of the
     first `keep` episodes the robot's (K, S+1, 2) and humans' (K, S+1, H, 2) positions
     (still after the end) and the goal (K, 2). Episode i plays from the i-th key of
-    split(key(seed), count) in a lane of its own, whatever `chunk`: at XLA's lowest
-    optimisation level the arrays do not depend on it (tests/test_navigation.py); at its
-    default level on a CPU the number of lanes can change the rounding (docs/navigation.md).
+    split(key(seed), count) in a lane of its own, whatever `chunk`; on a CPU the number of
+    lanes can change the rounding of the positions (docs/navigation.md).
     `progress` counts the episodes done, with an ETA."""
     keys = jax.random.split(jax.random.key(seed), count)
     size = min(count, chunk)

@@ -28,7 +28,7 @@ from typing import ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from gst_jax.simulate.environment import UNDETECTED, Observation
+from gst_jax.simulate.crowdnav.environment import UNDETECTED, Observation
 
 
 class PlannerState(NamedTuple):

@@ -16,12 +16,13 @@ from gst_jax.errors import RunError
 from gst_jax.model import Controls
 from gst_jax.progress import Progress
 from gst_jax.runs import Run
-from gst_jax.simulate.encounters import (episode_measures, run_encounters, sample_encounters,
-                                         summarize)
-from gst_jax.simulate.figures import animate_run, encounter_rates, plot_run
-from gst_jax.simulate.loop import StepModel, constant_velocity_model, gst_model, simulate
-from gst_jax.simulate.measures import robot_measures
-from gst_jax.simulate.scenarios import SCENARIOS
+from gst_jax.simulate.paper.encounters import (episode_measures, run_encounters, sample_encounters,
+                                               summarize)
+from gst_jax.simulate.paper.figures import animate_run, encounter_rates, plot_run
+from gst_jax.simulate.agents.predicted import StepModel, constant_velocity_model, gst_model
+from gst_jax.simulate.paper.loop import MODEL_HUMANS, simulate
+from gst_jax.simulate.paper.measures import robot_measures
+from gst_jax.simulate.paper.scenarios import SCENARIOS
 
 COLUMNS = ["scenario", "model", "min_distance_m", "collision_steps", "progress",
            "path_length_ratio", "u_turn", "frozen"]
@@ -56,14 +57,15 @@ def time_grid(runs: Sequence[Run]) -> TimeGrid:
 
 def run_scenarios(models: Sequence[tuple[str, StepModel]], scenario_names: Sequence[str],
                   out: Path, *, grid: TimeGrid = TimeGrid(), seed: int = 0,
-                  animate: bool = False) -> list[dict]:
-    """Simulate every model in every scenario on the models' time grid; one row of measures
-    (and figure paths) each. Writes out/results.json and the figures."""
+                  animate: bool = False, humans: str = MODEL_HUMANS) -> list[dict]:
+    """Simulate every model in every scenario on the models' time grid, the people moved as
+    `humans` says; one row of measures (and figure paths) each. Writes out/results.json and
+    the figures."""
     rows = []
     for name in scenario_names:
         scenario = SCENARIOS[name](grid)
         for label, model in models:
-            positions = np.asarray(simulate(model, scenario, jax.random.key(seed)))
+            positions = np.asarray(simulate(model, scenario, jax.random.key(seed), humans))
             row = {"scenario": scenario.name, "model": label,
                    **robot_measures(positions, scenario)}
             stem = f"{scenario.name}-{label.replace(' ', '_').replace('=', '').replace(':', '_')}"
@@ -89,7 +91,8 @@ def format_markdown(rows: Sequence[dict]) -> str:
 def run_encounter_study(models: Sequence[tuple[str, StepModel]], count: int, out: Path, *,
                         grid: TimeGrid = TimeGrid(), seed: int = 0,
                         progress: Progress | None = None,
-                        stored: Mapping[str, Path] | None = None) -> tuple[dict, dict]:
+                        stored: Mapping[str, Path] | None = None,
+                        humans: str = MODEL_HUMANS) -> tuple[dict, dict]:
     """Every model on the same `count` random encounters (`encounters.sample_encounters` of
     `seed`), one program each. Returns (summary per label, with compile and run seconds and
     episodes per second; per label the episodes' measures) and writes out/encounters.json
@@ -102,7 +105,9 @@ def run_encounter_study(models: Sequence[tuple[str, StepModel]], count: int, out
     episodes = sample_encounters(count, seed, grid)
     progress = progress or Progress()
     stored = stored or {}
-    same_episodes = {"episodes": count, "seed": seed, "step_s": grid.step_s}
+    same_episodes = {"episodes": count, "seed": seed, "step_s": grid.step_s,
+                     # records of the model's people (the paper's) name none
+                     **({} if humans == MODEL_HUMANS else {"humans": humans})}
     summaries, rows = {}, {}
     for label, model in models:
         path = stored.get(label)
@@ -111,7 +116,8 @@ def run_encounter_study(models: Sequence[tuple[str, StepModel]], count: int, out
             summaries[label], rows[label] = kept["summary"], kept["rows"]
             progress.line(f"{label}: {count} episodes read from {path}")
             continue
-        positions, compile_s, run_s = run_encounters(model, episodes, jax.random.key(seed))
+        positions, compile_s, run_s = run_encounters(model, episodes, jax.random.key(seed),
+                                                      humans)
         rows[label] = episode_measures(positions, episodes)
         summaries[label] = {**summarize(rows[label]), "compile_s": compile_s, "run_s": run_s,
                             "episodes_per_s": count / run_s}

@@ -36,9 +36,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from gst_jax.config import TimeGrid
-from gst_jax.simulate.loop import StepModel, episode
-from gst_jax.simulate.measures import robot_measures
-from gst_jax.simulate.scenarios import Scenario
+from gst_jax.simulate.agents.predicted import StepModel
+from gst_jax.simulate.paper.loop import MODEL_HUMANS, episode
+from gst_jax.simulate.paper.measures import robot_measures
+from gst_jax.simulate.paper.scenarios import Scenario
 
 KINDS = ("crossing", "late", "oncoming", "wander")
 GOAL = np.array([12.0, 0.0])
@@ -115,12 +116,14 @@ def sample_encounters(count: int, seed: int = 0, grid: TimeGrid = TimeGrid(),
     return Encounters(start, velocity, detected_from, people, kind, grid, duration_s)
 
 
-def run_encounters(model: StepModel, encounters: Encounters, key: jax.Array
-                   ) -> tuple[np.ndarray, float, float]:
+def run_encounters(model: StepModel, encounters: Encounters, key: jax.Array,
+                   humans: str = MODEL_HUMANS) -> tuple[np.ndarray, float, float]:
     """Positions (E, steps + 1, A, 2) of every episode, one jitted program over all of them
-    (each its own key), and the seconds it took to compile and to run."""
+    (each its own key), and the seconds it took to compile and to run; the people moved as
+    `humans` says (`loop.episode`)."""
     grid = encounters.grid
     run = jax.jit(jax.vmap(functools.partial(episode, model, steps=encounters.steps,
+                                             humans=humans,
                                              obs_len=grid.obs_len, step_s=grid.step_s)))
     args = (jnp.asarray(encounters.start, jnp.float32),
             jnp.asarray(encounters.velocity, jnp.float32),

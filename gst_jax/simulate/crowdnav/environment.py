@@ -14,7 +14,7 @@ The task is CrowdNav++'s default (Shuijing725/CrowdNav_Prediction_AttnGraph, com
   to that speed) from a start to a goal in [-6, 6]^2 at least 8 m apart;
 - 20 humans (radius U(0.3, 0.5), preferred speed U(0.5, 1.5)) who start on a circle of
   radius 6 sqrt 2 (shifted by U(0, 2) m per axis) and walk to the opposite point with ORCA
-  (`orca.py`; time horizon 5 s, all 19 others, neighbour distance U(5, 10) per episode,
+  (`agents/orca.py`; time horizon 5 s, all 19 others, neighbour distance U(5, 10) per episode,
   radius + 0.16 m) or, CrowdNav++'s option `humans.policy = "social_force"`, with its social
   force (`human_policy=SOCIAL_FORCE`), not seeing the robot (with `reactive`, CrowdNav++'s
   `robot.visible = True`, they see it as one more agent, radius 0.3 + 0.16 m, and give way to
@@ -68,7 +68,9 @@ import jax.numpy as jnp
 
 from gst_jax import conformal
 from gst_jax.errors import RunError
-from gst_jax.simulate.orca import OrcaParams, orca_velocities
+from gst_jax.simulate.agents.motion import (SocialForce, holonomic, social_force_velocities as
+                                            social_force, toward_goal)
+from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
 from gst_jax.stream import Regions, StreamModel, StreamState, init_state, predict_slots
 
 # Outcomes of a step (info["outcome"]), CrowdNav++'s info classes.
@@ -264,15 +266,13 @@ class CrowdNav:
         """One step without the reset: reward and outcome on the state before the move
         (CrowdNav++'s order), then the move, the observation, and the humans' new goals."""
         predict_key, goals_key, respawn_key = jax.random.split(key, 3)
-        speed = jnp.linalg.norm(action)
-        action = jnp.where(speed > params.robot_v_pref,
-                           action * params.robot_v_pref / jnp.maximum(speed, 1e-9), action)
+        robot_position, action = holonomic(state.robot_position, action, params.robot_v_pref,
+                                           params.step_s)
         human_velocity = self.human_velocities(state, params)
         reward, done, info, potential = _reward(state, params)
 
         state = state.replace(
-            robot_position=state.robot_position + action * params.step_s,
-            robot_velocity=action,
+            robot_position=robot_position, robot_velocity=action,
             human_position=state.human_position + human_velocity * params.step_s,
             human_velocity=human_velocity, potential=potential,
             time=state.time + params.step_s, steps=state.steps + 1)
@@ -307,10 +307,7 @@ class CrowdNav:
         return orca
 
     def _orca_velocities(self, state: EnvState, params: EnvParams, factor) -> jax.Array:
-        to_goal = state.human_goal - state.human_position
-        distance = jnp.linalg.norm(to_goal, axis=-1, keepdims=True)
-        preferred = factor * jnp.where(distance > 1.0, to_goal / jnp.maximum(distance, 1e-9),
-                                       to_goal)
+        preferred = toward_goal(state.human_position, state.human_goal, factor)
         agents = (state.human_position, state.human_velocity,
                   state.human_radius + 0.01 + params.safety_space, state.human_v_pref, preferred)
         if self.reactive:         # the robot is one more agent, as CrowdNav++ adds it
@@ -388,28 +385,16 @@ class CrowdNav:
 
 def social_force_velocities(state: EnvState, params: EnvParams, reactive: bool = False
                             ) -> jax.Array:
-    """CrowdNav++'s social force (crowd_nav/policy/social_force.py), every human (H, 2): its
-    velocity changed in one step by KI (v_pref towards the goal - velocity) and by each other
-    human's push A exp((r_i + r_j - d_ij) / B) along their offset (and the robot's, where
-    `reactive`), then capped at v_pref."""
-    to_goal = state.human_goal - state.human_position
-    distance = jnp.linalg.norm(to_goal, axis=-1, keepdims=True)
-    desired = to_goal / jnp.maximum(distance, 1e-9) * state.human_v_pref[:, None]
-    pull = params.relocation_rate * (desired - state.human_velocity)
+    """Every human's social-force velocity (H, 2) (`agents.motion`), the robot among those
+    who push where `reactive`."""
     others, others_radius = state.human_position, state.human_radius
     if reactive:
         others = jnp.concatenate([others, state.robot_position[None]])
         others_radius = jnp.concatenate([others_radius, jnp.array([params.robot_radius])])
-    offsets = state.human_position[:, None] - others[None]               # [i, j] p_i - p_j
-    apart = jnp.linalg.norm(offsets, axis=-1)
-    strength = params.force_strength * jnp.exp(
-        (state.human_radius[:, None] + others_radius[None] - apart) / params.force_range)
-    # A human's own offset is zero, so it does not push itself.
-    push = jnp.sum((strength / jnp.maximum(apart, 1e-9))[..., None] * offsets, axis=1)
-    velocity = state.human_velocity + (pull + push) * params.step_s
-    speed = jnp.linalg.norm(velocity, axis=-1, keepdims=True)
-    v_pref = state.human_v_pref[:, None]
-    return jnp.where(speed > v_pref, velocity / jnp.maximum(speed, 1e-9) * v_pref, velocity)
+    force = SocialForce(params.force_strength, params.force_range, params.relocation_rate)
+    return social_force(state.human_position, state.human_velocity, state.human_goal,
+                        state.human_radius, state.human_v_pref, others, others_radius, force,
+                        params.step_s)
 
 
 def _uniform(key, shape, bounds):
