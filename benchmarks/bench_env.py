@@ -1,5 +1,5 @@
 """CrowdNav++'s task with GST in the loop as one jitted program: environment steps per
-second, and one MPC planning step (`gst_jax.simulate.environment`, `planner`).
+second, and one MPC planning step (`gst_jax.simulate.crowdnav.environment`, `planner`).
 
     python benchmarks/bench_env.py                               # 64, 256, 1024 environments
     python benchmarks/bench_env.py --envs 64 --predictor gst cv none --steps 100
@@ -25,9 +25,9 @@ import jax.numpy as jnp
 
 from common import print_table, record
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import (CONSTANT_VELOCITY, ORCA, SOCIAL_FORCE, CrowdNav,
-                                          EnvParams)
-from gst_jax.simulate.planner import SamplingMPC
+from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, ORCA, SOCIAL_FORCE, CrowdNav,
+                                                   EnvParams)
+from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.stream import Regions, StreamModel, predict_slots
 
 MODEL = "pretrained:crowdnav_sj_rand"

@@ -7,7 +7,7 @@
 Every finished member of the study (work directories named n{N}-{partial|full}-seed{S}
 under --study, N = 0 for full connection), the shipped `crowd_d` and the robot driven by
 constant velocity meet the same `--episodes` random encounters
-(`gst_jax.simulate.encounters`, seed 0), each model in one jitted program over all of them;
+(`gst_jax.simulate.paper.encounters`, seed 0), each model in one jitted program over all of them;
 a member's episodes are kept in its work directory (encounters/), so a rerun simulates only the
 members that finished since. The members of the record already written (results/ with
 --publish) whose work directories are gone, another sitting's or a fresh clone's, keep their
@@ -33,10 +33,10 @@ from _study import encounter_label
 
 from gst_jax.config import Member
 from gst_jax.runs import load_model
-from gst_jax.simulate.encounters import format_encounters
-from gst_jax.simulate.loop import constant_velocity_model
-from gst_jax.simulate.study import (draw_encounter_rates, run_encounter_study, step_models,
-                                    time_grid)
+from gst_jax.simulate.paper.encounters import format_encounters
+from gst_jax.simulate.agents.predicted import constant_velocity_model
+from gst_jax.simulate.paper.study import (draw_encounter_rates, run_encounter_study, step_models,
+                                          time_grid)
 
 MEMBER = re.compile(r"n(\d+)-(partial|full)-seed(\d+)$")
 

@@ -14,10 +14,10 @@ DtACI discs.
 
 Each configuration is `python -m gst_jax.navigate evaluate --planner P --regions R
 [--humans social-force] [--reactive] [--num-humans N] [--shift S] --episodes 500`
-(`gst_jax.simulate.navigation.evaluate`); one whose record is already in the output folder is
-not run again, so an interrupted study continues where it stopped. Beside them, CrowdNav++'s
-own released test logs (its RL policy with GST, 500 episodes each), whose setting differs
-(below the table).
+(`gst_jax.simulate.crowdnav.navigation.evaluate`); one whose record is already in the output
+folder is not run again, so an interrupted study continues where it stopped. Beside them,
+CrowdNav++'s own released test logs (its RL policy with GST, 500 episodes each), whose setting
+differs (below the table).
 """
 
 from __future__ import annotations
@@ -30,10 +30,10 @@ import time
 from _common import add_results_flags, results_folder
 
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT
-from gst_jax.simulate.navigation import (described_run, environment_for, evaluate,
-                                         format_table, record_name, row_label)
-from gst_jax.simulate.planner import SamplingMPC
+from gst_jax.simulate.crowdnav.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT
+from gst_jax.simulate.crowdnav.navigation import (described_run, environment_for, evaluate,
+                                                  format_table, record_name, row_label)
+from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 
 # A scenario, how the humans walk: (policy, reactive, num_humans, shift). Issue 60: CrowdNav++'s
@@ -222,7 +222,7 @@ def main() -> None:
     text = "\n".join([
         "# Planning against GST's calibrated predictions in CrowdNav++'s task", "",
         f"Made by `python experiments/navigation.py --publish`: {args.episodes} test episodes "
-        f"(seed {args.seed} on, the same for every row) of `gst_jax.simulate.environment."
+        f"(seed {args.seed} on, the same for every row) of `gst_jax.simulate.crowdnav.environment."
         "CrowdNav` (CrowdNav++'s default task: 20 ORCA humans who ignore the robot, 0.25 s "
         "steps, 50 s; in the rows marked so, its social-force humans instead), "
         "docs/navigation.md. Navigation time over the successful episodes, path "

@@ -1,5 +1,5 @@
 """Train a robot's policy with PPO from rejax (a maintained JAX RL library) in CrowdNav++'s
-task with GST in the loop: gst_jax.simulate.environment.CrowdNav as it is, behind the thin
+task with GST in the loop: gst_jax.simulate.crowdnav.environment.CrowdNav as it is, behind the thin
 adapter below (a flat observation, gymnax's spaces, rejax's max_steps_in_episode).
 
     pip install ".[rl]"            # rejax and gymnax: the rl extra
@@ -10,7 +10,7 @@ adapter below (a flat observation, gymnax's spaces, rejax's max_steps_in_episode
 The whole training (environments, GST with DtACI discs, PPO's updates) is one jitted program.
 This is the example, not CrowdNav++'s RL training (its recurrent attention policy over 20 M
 steps): it reports the seconds it took and, with --episodes, CrowdNav++'s measures of the
-trained policy (`gst_jax.simulate.navigation`). With --chunk, the program trains --chunk
+trained policy (`gst_jax.simulate.crowdnav.navigation`). With --chunk, the program trains --chunk
 steps at a time and after each measures the policy over --episodes test episodes, appending
 a point of the learning curve to <workdir>/curve.jsonl and saving the training state beside
 it (state.msgpack), from which a rerun continues; it says when success first reached 0.9.
@@ -32,8 +32,9 @@ import jax.numpy as jnp
 from flax import serialization, struct
 
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import CONSTANT_VELOCITY, CrowdNav, EnvParams, Observation
-from gst_jax.simulate.navigation import max_steps, navigation_measures, run_episodes
+from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, CrowdNav, EnvParams,
+                                                   Observation)
+from gst_jax.simulate.crowdnav.navigation import max_steps, navigation_measures, run_episodes
 from gst_jax.stream import Regions
 
 if TYPE_CHECKING:                   # rejax and gymnax: the rl extra, imported where used

@@ -15,7 +15,7 @@ import matplotlib
 import numpy as np
 
 # Figures are files, never windows: the one place matplotlib is set up, for every figure of
-# the package (gst_jax.simulate.figures imports `plt` and `save` from here).
+# the package (gst_jax.simulate.paper.figures imports `plt` and `save` from here).
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 

@@ -2,7 +2,7 @@
 
     python -m gst_jax.navigate evaluate --planner mpc --episodes 500 --gif 3
 
-A planner in `gst_jax.simulate.environment.CrowdNav` (CrowdNav++'s default task, or humans
+A planner in `gst_jax.simulate.crowdnav.environment.CrowdNav` (CrowdNav++'s default task, or humans
 who see the robot, more or fewer, or changing midway) over many episodes, --chunk at a time
 in one jitted program; CrowdNav++'s and ICP's measures as a table. Episodes are seeded from
 1000 (CrowdNav++'s test offset); the planner's settings were chosen on seed 1.
@@ -16,10 +16,10 @@ from pathlib import Path
 from gst_jax import cli
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
-from gst_jax.simulate.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT, EnvParams
-from gst_jax.simulate.navigation import (CHUNK, PLANNERS, described_run, environment_for,
-                                         evaluate, summary)
-from gst_jax.simulate.planner import SamplingMPC
+from gst_jax.simulate.crowdnav.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT, EnvParams
+from gst_jax.simulate.crowdnav.navigation import (CHUNK, PLANNERS, described_run, environment_for,
+                                                  evaluate, summary)
+from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -174,7 +174,8 @@ def test_the_api_reference_builds_from_the_docstrings_without_a_warning(tmp_path
     assert {"gst_jax.html", "gst_jax/crowdnav.html", "gst_jax/predict.html",
             "gst_jax/config.html", "gst_jax/runs.html", "gst_jax/stream.html",
             "gst_jax/conformal.html", "gst_jax/coverage.html", "gst_jax/simulate.html",
-            "gst_jax/simulate/environment.html", "gst_jax/simulate/planner.html"} <= pages
+            "gst_jax/simulate/crowdnav/environment.html",
+            "gst_jax/simulate/crowdnav/planner.html", "gst_jax/simulate/agents.html"} <= pages
     assert 'id="make_predict"' in (tmp_path / "gst_jax.html").read_text()
     assert 'id="make_predict"' in (tmp_path / "gst_jax" / "predict.html").read_text()
     assert 'id="Predictor"' in (tmp_path / "gst_jax" / "crowdnav.html").read_text()

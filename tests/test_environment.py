@@ -1,4 +1,4 @@
-"""CrowdNav++'s task as a jittable environment (gst_jax.simulate.environment): its rules on
+"""CrowdNav++'s task as a jittable environment (gst_jax.simulate.crowdnav.environment): its rules on
 cases derived from CrowdNav++'s code (crowd_sim_var_num.py's calc_reward and reset,
 crowd_sim.py's detect_visible, vec_pretext_normalize.py's prediction penalty)."""
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from gst_jax.runs import load_model
-from gst_jax.simulate import environment
-from gst_jax.simulate.environment import (COLLISION, DISCOMFORT, NOTHING, REACH_GOAL, TIMEOUT,
-                                          CrowdNav, EnvParams)
+from gst_jax.simulate.crowdnav import environment
+from gst_jax.simulate.crowdnav.environment import (COLLISION, DISCOMFORT, NOTHING, REACH_GOAL,
+                                                   TIMEOUT, CrowdNav, EnvParams)
 from gst_jax.stream import Regions, StreamModel
 
 ENV = CrowdNav(num_humans=4)

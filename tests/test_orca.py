@@ -1,4 +1,4 @@
-"""ORCA inside jit (gst_jax.simulate.orca) against the RVO2 algorithm: a plain-Python
+"""ORCA inside jit (gst_jax.simulate.agents.orca) against the RVO2 algorithm: a plain-Python
 transcription of its sequential code on random crowds, and cases whose answer follows from
 the algorithm by hand."""
 
@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax.simulate.orca import (Lines, OrcaParams, det, new_velocity, orca_velocities,
-                                   solve_2d)
+from gst_jax.simulate.agents.orca import (Lines, OrcaParams, det, new_velocity, orca_velocities,
+                                          solve_2d)
 from gst_jax.testing import orca_reference
 
 STEP_S = 0.25

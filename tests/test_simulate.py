@@ -18,6 +18,7 @@ from gst_jax.model import Controls, init_params
 from gst_jax.rollout import rollout
 from gst_jax.runs import load_model
 from gst_jax.simulate.__main__ import main as simulate_main
+from gst_jax.simulate.paper import encounters, loop
 
 
 @pytest.mark.parametrize("name", list(simulate.SCENARIOS))
@@ -89,9 +90,45 @@ def test_command_runs_a_shipped_model_and_writes_measures_and_figures(tmp_path, 
             assert (gif.format, gif.n_frames) == ("GIF", simulate.late_crossing().steps + 1)
 
 
-def test_random_encounters_are_reproducible_and_their_empty_slots_never_seen():
-    from gst_jax.simulate import encounters
+def test_the_papers_scenarios_run_with_crowdnavs_reactive_orca_humans(capsys, tmp_path):
+    """One core moves both simulators' agents: in each of the paper's scenarios a robot that
+    walks straight on (constant velocity) meets people who, as ORCA humans, give way to it
+    (never closer than their two radii), where people moved by the model as the robot do not
+    in the intersection; the robot's own path is the model's either way."""
+    closest = {}
+    for name, make in simulate.SCENARIOS.items():
+        scenario = make()
+        for humans in (simulate.MODEL_HUMANS, simulate.ORCA_HUMANS):
+            positions = np.asarray(simulate.simulate(simulate.constant_velocity_model,
+                                                     scenario, jax.random.key(0), humans))
+            steps = np.arange(scenario.steps + 1)[:, None]
+            np.testing.assert_allclose(positions[:, 0], scenario.start[0] + scenario.velocity[0]
+                                       * scenario.grid.step_s * steps, atol=1e-4)
+            closest[name, humans] = np.linalg.norm(positions[:, 1:] - positions[:, :1],
+                                                   axis=-1).min()
+        assert closest[name, simulate.ORCA_HUMANS] >= 2 * loop.ORCA_RADIUS - 0.02
+    assert closest["c", simulate.MODEL_HUMANS] < 0.5
+    # In random encounters (groups that start closer than their ORCA radii allow) no one comes
+    # within the collision distance of the robot, where people moved by the model often do.
+    episodes = encounters.sample_encounters(20, seed=2)
+    people = np.arange(11)[None, None, 1:] <= episodes.people[:, None, None]
+    hits = {}
+    for humans in (simulate.MODEL_HUMANS, simulate.ORCA_HUMANS):
+        positions, _, _ = encounters.run_encounters(simulate.constant_velocity_model, episodes,
+                                                    jax.random.key(0), humans)
+        gaps = np.linalg.norm(positions[:, :, 1:] - positions[:, :, :1], axis=-1)
+        hits[humans] = int(np.sum(np.where(people, gaps, np.inf).min(axis=(1, 2))
+                                  < simulate.ROBOT_COLLISION_DISTANCE))
+    assert hits[simulate.ORCA_HUMANS] == 0 and hits[simulate.MODEL_HUMANS] >= 5
+    simulate_main(["--scenario", "c", "--humans", "orca", "--workdir", str(tmp_path), "--json"])
+    [row] = json.loads(capsys.readouterr().out)
+    assert row["min_distance_m"] == pytest.approx(closest["c", simulate.ORCA_HUMANS], abs=1e-4)
+    with pytest.raises(ValueError, match="humans must be"):
+        loop.episode(simulate.constant_velocity_model, *(np.zeros((2, 2)),) * 2, np.zeros(2),
+                     jax.random.key(0), steps=1, obs_len=8, step_s=0.4, humans="walls")
 
+
+def test_random_encounters_are_reproducible_and_their_empty_slots_never_seen():
     first = encounters.sample_encounters(40, seed=3)
     again = encounters.sample_encounters(40, seed=3)
     np.testing.assert_array_equal(first.start, again.start)
@@ -109,8 +146,6 @@ def test_encounters_run_as_one_program_equal_each_episode_simulated_alone():
     """Constant velocity ignores everyone: the robot walks straight and arrives after 9.6 s
     (within 0.5 m of its goal 12 m away at 1.2 m/s, 0.4 s steps); GST on a batch of
     encounters moves everyone as `simulate` does on each episode's own agents."""
-    from gst_jax.simulate import encounters
-
     episodes = encounters.sample_encounters(3, seed=1)
     positions, _, _ = encounters.run_encounters(simulate.constant_velocity_model, episodes,
                                                 jax.random.key(0))
@@ -149,7 +184,7 @@ def test_the_encounter_study_pairs_each_sparse_member_with_its_full_connection(t
 
 def _froze_in(flags: str) -> dict:
     """A model's summary over episodes that froze where `flags` says '1'."""
-    from gst_jax.simulate.encounters import summarize
+    from gst_jax.simulate.paper.encounters import summarize
     rows = [{"freezing_or_u_turn": f == "1", "frozen": f == "1", "u_turn": False,
              "collided": False, "arrived": f == "0", "time_to_goal_s": 9.0, "progress": 1.0,
              "path_length_ratio": 1.1} for f in flags]
@@ -214,7 +249,7 @@ def test_a_models_stored_encounters_are_read_back_not_simulated_again(tmp_path):
     """run_encounter_study(stored=...): the first call simulates and keeps the measures; the
     second reads them (a model that cannot run proves nothing was simulated); other episodes
     (another count) are simulated anew."""
-    from gst_jax.simulate.study import run_encounter_study
+    from gst_jax.simulate.paper.study import run_encounter_study
 
     stored = {"cv": tmp_path / "cv.json"}
     first, rows = run_encounter_study([("cv", simulate.constant_velocity_model)], 6,

@@ -1,6 +1,6 @@
 """A plain-Python ORCA for one agent, loops and early returns as in the RVO2 library's
 algorithm (van den Berg et al. 2011; RVO2's Agent::computeNewVelocity and its three linear
-programs), float64, no jax: what tests/test_orca.py holds gst_jax.simulate.orca to.
+programs), float64, no jax: what tests/test_orca.py holds gst_jax.simulate.agents.orca to.
 
 Lines are lists of (point, direction) pairs of 2-tuples; velocities are 2-tuples.
 """

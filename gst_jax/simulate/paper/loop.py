@@ -30,6 +30,7 @@ MODEL_HUMANS, ORCA_HUMANS = "model", "orca"
 # robot too), a 5 s horizon, neighbours within 10 m; a goal this many seconds along the line.
 ORCA_RADIUS, ORCA_HORIZON_S, ORCA_NEIGHBOUR_DIST, GOAL_AHEAD_S = 0.46, 5.0, 10.0, 100.0
 
+
 def simulate(model: StepModel, scenario: Scenario, key: jax.Array, humans: str = MODEL_HUMANS
              ) -> jax.Array:
     """Positions (steps + 1, A, 2) of every agent, step 0 first. Jit-compiled closed loop."""
