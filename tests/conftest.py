@@ -16,9 +16,9 @@ import tempfile
 # loss the same; XLA:CPU's older (non-MLIR) fusion emitters compile a training step's
 # programs in 8-11 s of backend time against 14-17 s (tests/conftest.py's flags, 2-core AMD
 # EPYC, jaxlib 0.10.2), the results equal within the suite's tolerances.
-os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""),
-                                    "--xla_backend_optimization_level=0",
-                                    "--xla_cpu_use_fusion_emitters=false"]).strip()
+SUITE_XLA_FLAGS = ["--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false"]
+USER_XLA_FLAGS = os.environ.get("XLA_FLAGS", "")
+os.environ["XLA_FLAGS"] = " ".join([USER_XLA_FLAGS, *SUITE_XLA_FLAGS]).strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

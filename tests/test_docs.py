@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+from conftest import USER_XLA_FLAGS
 
 ROOT = Path(__file__).parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -89,8 +90,10 @@ def _run(block: Block, tmp: Path) -> subprocess.CompletedProcess:
     cwd.mkdir()
     for name in LINKED:
         (cwd / name).symlink_to(ROOT / name, target_is_directory=True)
+    # XLA as a reader has it, not as the suite sets it for compiling fast: the blocks run
+    # more than they compile (README's quick start: 42 s against 55 s, 2-core VM).
     env = {**os.environ, "PATH": f"{_interpreter_folder(tmp)}{os.pathsep}{os.environ['PATH']}",
-           "MPLBACKEND": "Agg"}
+           "MPLBACKEND": "Agg", "XLA_FLAGS": USER_XLA_FLAGS}
     if LANGUAGES[block.language] == "python":       # tracebacks name the page and line
         command = [sys.executable, "-c",
                    f"exec(compile({block.code!r}, {block.where!r}, 'exec'))"]
