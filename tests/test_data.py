@@ -297,6 +297,22 @@ def test_evaluation_batches_respect_the_edge_budget():
     assert len({b.shape[2] for b in batches}) > 1
 
 
+def test_a_bucket_of_few_windows_is_padded_to_the_next_power_of_two_of_them():
+    """A validation split of three windows is predicted in a batch of 4 scenes, not of the
+    budget's 256 (4.4 s against 0.09 s); a bucket of many windows keeps the budget's size."""
+    from gst_jax.data.batching import EDGE_BUDGET
+
+    hotel = data.load_split(DataConfig(scene="hotel"), "test")
+    for count in (1, 3, 5):
+        batches = list(data.evaluation_batches(hotel.subset(range(count))))
+        assert sum(int(b.scene_mask.sum()) for b in batches) == count
+        for batch in batches:
+            real = int(batch.scene_mask.sum())
+            assert batch.shape[0] == 1 << (real - 1).bit_length()
+    univ = list(data.evaluation_batches(data.load_split(DataConfig(scene="univ"), "test")))
+    assert max(b.shape[0] for b in univ if b.shape[2] == 48) == EDGE_BUDGET // 48 ** 2 == 7
+
+
 # --- make_batch ------------------------------------------------------------------------------
 
 def test_make_batch_from_nan_marked_observations():
