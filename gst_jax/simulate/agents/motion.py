@@ -15,12 +15,12 @@ import jax.numpy as jnp
 
 
 class SocialForce(NamedTuple):
-    """CrowdNav++'s social force (`sf` in its config): strength A, range B (m), inverse
-    relocation time KI (1/s)."""
+    """A social force's strength A, range B (m) and inverse relocation time KI (1/s); CrowdNav++'s
+    values are `crowdnav.environment.EnvParams`' defaults."""
 
-    strength: float | jax.Array = 2.0
-    range: float | jax.Array = 1.0
-    relocation_rate: float | jax.Array = 1.0
+    strength: float | jax.Array
+    range: float | jax.Array
+    relocation_rate: float | jax.Array
 
 
 def holonomic(position: jax.Array, velocity: jax.Array, max_speed, step_s: float
