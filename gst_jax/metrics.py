@@ -13,7 +13,6 @@ import dataclasses
 from typing import Callable, NamedTuple
 
 import numpy as np
-from scipy import stats
 
 # Trajectron++ clips the log density of the truth below at this value.
 KDE_LOG_DENSITY_FLOOR = -20.0
@@ -109,8 +108,12 @@ def kde_log_density(samples: np.ndarray, point: np.ndarray) -> float:
     Samples that span less than a plane (all equal, or collinear: GST (D) often samples the
     same graph K times) have no density off their support: the log density is the floor.
     """
+    # Imported here: scipy.stats takes longer to import than the rest of a command's start-up
+    # beside jax, and only an evaluation with the KDE score needs it.
+    from scipy.stats import gaussian_kde
+
     try:
-        log_density = float(stats.gaussian_kde(samples.T).logpdf(point)[0])
+        log_density = float(gaussian_kde(samples.T).logpdf(point)[0])
     except np.linalg.LinAlgError:
         return KDE_LOG_DENSITY_FLOOR
     return max(log_density, KDE_LOG_DENSITY_FLOOR) if np.isfinite(log_density) else KDE_LOG_DENSITY_FLOOR
