@@ -75,7 +75,7 @@ def _train(workdir: Path, kill_after: int = 0) -> subprocess.CompletedProcess:
 @pytest.fixture(scope="module")
 def fixed_step():
     window_set = data.load_split(DataConfig(scene="zara1"), "train")
-    step = next(iter(data.training_batches(window_set.subset(range(8)), batch_size=8, seed=0,
+    step = next(iter(data.training_batches(window_set.subset(range(4)), batch_size=4, seed=0,
                                            epoch=1)))
     assert len(step.micro_batches) == 1                     # zara1's first windows are small
     return step
@@ -147,7 +147,7 @@ def test_loss_goes_down_on_a_fixed_batch(fixed_step):
     hparams = hparams_for_epoch(MODEL, TrainConfig(), epoch=1)
     key = jax.random.key(1)
     losses = []
-    for _ in range(16):                    # the last five's mean: 0.35 of the first three's
+    for _ in range(16):                    # the last five's mean: 0.26 of the first three's
         state, metrics = step(state, key, fixed_step, hparams)
         losses.append(float(metrics["loss"]))
     assert all(np.isfinite(losses))
