@@ -61,9 +61,9 @@ SCRIPT = textwrap.dedent("""
     out.update(step_loss=float(loss), step_grads=flat(grads),
                step_micro_batches=len(packed.micro_batches))
 
-    # Two epochs of a run on hotel's first windows (at most 16 pedestrians: the step's small
-    # micro-batch program serves it again, from the compilation cache).
-    fit(config, hotel, TrainConfig(epochs=2, batch_size=16, max_train_windows=32,
+    # Two epochs of one step on hotel's first windows (at most 16 pedestrians: the step's
+    # small micro-batch program serves it again, from the compilation cache).
+    fit(config, hotel, TrainConfig(epochs=2, batch_size=16, max_train_windows=16,
                                    checkpoint_every=1), f"{tmp}/run", devices=devices)
     run = load_run(f"{tmp}/run")
     out.update(epoch_losses=[r["loss"] for r in run.workdir.read_metrics()],

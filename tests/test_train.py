@@ -130,6 +130,13 @@ def test_compressed_schedule_fits_the_paper_shape_to_the_run():
                                rtol=1e-6)
 
 
+def test_the_finetune_schedule_holds_its_learning_rate_and_the_end_temperature():
+    config = TrainConfig(schedule="finetune", epochs=10, learning_rate=1e-4)
+    learning_rates, taus = zip(*(make_schedule(config).at(e) for e in range(1, 11)))
+    np.testing.assert_allclose(learning_rates, [1e-4] * 10, rtol=1e-6)
+    np.testing.assert_allclose(taus, [0.03] * 10, rtol=1e-6)
+
+
 def test_the_schedule_is_part_of_a_runs_identity():
     compressed = TrainConfig(schedule="compressed", epochs=50)
     assert run_name(DataConfig(), PAPER, compressed) == "eth-paper-d-n1-compressed-e50-seed1000"
