@@ -190,8 +190,8 @@ def test_absent_pedestrian_gives_no_nan_in_outputs_or_gradients(params, walk):
     np.testing.assert_array_equal(output.displacements[0, :, 1:3], 0.0)
     for output_type in ("deterministic", "gaussian"):
         config = dataclasses.replace(CONFIG, output=output_type)
-        grads = jax.grad(lambda p: batch_loss(
-            config, run(p, batch, noise, hard=False, config=config), batch))(params)
+        grads = jax.jit(jax.grad(lambda p: batch_loss(
+            config, run(p, batch, noise, hard=False, config=config), batch)))(params)
         for leaf in jax.tree.leaves(grads):
             assert np.all(np.isfinite(leaf))
 
@@ -259,8 +259,8 @@ def test_tcn_readout_predicts_from_observations_only_without_nan(walk):
         future_moved[:, config.obs_len:] += 5.0
         moved = run(params, scene_batch(future_moved, mask), noise, hard=False, config=config)
         np.testing.assert_array_equal(moved.displacements, output.displacements)
-        grads = jax.grad(lambda p: batch_loss(
-            config, run(p, batch, noise, hard=False, config=config), batch))(params)
+        grads = jax.jit(jax.grad(lambda p: batch_loss(
+            config, run(p, batch, noise, hard=False, config=config), batch)))(params)
         assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(grads))
         assert np.abs(grads["tcn"]["time_conv_0"]["kernel"]).sum() > 0
 
