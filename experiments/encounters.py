@@ -33,8 +33,8 @@ from _study import encounter_label
 
 from gst_jax.config import Member
 from gst_jax.runs import load_model
-from gst_jax.simulate.paper.encounters import format_encounters
 from gst_jax.simulate.agents.predicted import constant_velocity_model
+from gst_jax.simulate.paper.encounters import format_encounters
 from gst_jax.simulate.paper.study import (draw_encounter_rates, run_encounter_study, step_models,
                                           time_grid)
 

@@ -68,8 +68,7 @@ import jax.numpy as jnp
 
 from gst_jax import conformal
 from gst_jax.errors import RunError
-from gst_jax.simulate.agents.motion import (SocialForce, holonomic, social_force_velocities as
-                                            social_force, toward_goal)
+from gst_jax.simulate.agents import motion
 from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
 from gst_jax.stream import Regions, StreamModel, StreamState, init_state, predict_slots
 
@@ -266,8 +265,8 @@ class CrowdNav:
         """One step without the reset: reward and outcome on the state before the move
         (CrowdNav++'s order), then the move, the observation, and the humans' new goals."""
         predict_key, goals_key, respawn_key = jax.random.split(key, 3)
-        robot_position, action = holonomic(state.robot_position, action, params.robot_v_pref,
-                                           params.step_s)
+        robot_position, action = motion.holonomic(state.robot_position, action,
+                                                  params.robot_v_pref, params.step_s)
         human_velocity = self.human_velocities(state, params)
         reward, done, info, potential = _reward(state, params)
 
@@ -307,7 +306,7 @@ class CrowdNav:
         return orca
 
     def _orca_velocities(self, state: EnvState, params: EnvParams, factor) -> jax.Array:
-        preferred = toward_goal(state.human_position, state.human_goal, factor)
+        preferred = motion.toward_goal(state.human_position, state.human_goal, factor)
         agents = (state.human_position, state.human_velocity,
                   state.human_radius + 0.01 + params.safety_space, state.human_v_pref, preferred)
         if self.reactive:         # the robot is one more agent, as CrowdNav++ adds it
@@ -391,10 +390,11 @@ def social_force_velocities(state: EnvState, params: EnvParams, reactive: bool =
     if reactive:
         others = jnp.concatenate([others, state.robot_position[None]])
         others_radius = jnp.concatenate([others_radius, jnp.array([params.robot_radius])])
-    force = SocialForce(params.force_strength, params.force_range, params.relocation_rate)
-    return social_force(state.human_position, state.human_velocity, state.human_goal,
-                        state.human_radius, state.human_v_pref, others, others_radius, force,
-                        params.step_s)
+    force = motion.SocialForce(params.force_strength, params.force_range,
+                               params.relocation_rate)
+    return motion.social_force_velocities(
+        state.human_position, state.human_velocity, state.human_goal, state.human_radius,
+        state.human_v_pref, others, others_radius, force, params.step_s)
 
 
 def _uniform(key, shape, bounds):
