@@ -23,7 +23,7 @@ os.environ["XLA_FLAGS"] = " ".join([USER_XLA_FLAGS, *SUITE_XLA_FLAGS]).strip()
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
-from gst_jax.training.step import make_train_step  # noqa: E402
+from gst_jax.training import step  # noqa: E402
 
 CACHE = os.path.join(tempfile.gettempdir(), f"gst_jax_tests_xla_cache_{os.getuid()}")
 os.environ["JAX_COMPILATION_CACHE_DIR"] = CACHE
@@ -35,6 +35,6 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
     yield
-    make_train_step.cache_clear()
+    step._last_train_step.cache_clear()
     jax.clear_caches()
     gc.collect()

@@ -237,6 +237,14 @@ def test_a_packed_step_equals_the_same_windows_in_one_padded_batch():
     assert abs(float(other) - float(loss)) > 1e-4
 
 
+def test_the_last_train_step_is_kept_however_its_arguments_are_spelled():
+    """A test or notebook that calls `make_train_step(config)` after `fit` (which names every
+    argument) gets fit's step and its traced programs, not a second tracing."""
+    kept = make_train_step(MODEL, rotate=True, devices=None)
+    assert make_train_step(MODEL) is kept
+    assert make_train_step(MODEL, rotate=False) is not kept
+
+
 def test_non_finite_step_keeps_parameters(fixed_step):
     state = create_train_state(MODEL, jax.random.key(0))
     fully_detected = np.argmax(fixed_step.micro_batches[0].node_mask[0].min(0))

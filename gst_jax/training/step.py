@@ -160,7 +160,6 @@ def all_finite(tree: Any) -> jax.Array:
                               if jnp.issubdtype(leaf.dtype, jnp.floating)]))
 
 
-@functools.lru_cache(maxsize=1)
 def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool = False,
                     member_map: bool | None = None, devices: Devices | None = None
                     ) -> TrainStep:
@@ -168,7 +167,14 @@ def make_train_step(config: ModelConfig, *, rotate: bool = True, members: bool =
 
     The last one made is kept: tracing the model takes longer than loading its programs from
     the persistent cache, so runs of one configuration trained one after another in a
-    process (tests, notebooks) trace it once. Only one: each compiled program holds memory
-    maps, of which a process may hold 65530 (docs/commands.md)."""
+    process (tests, notebooks) trace it once, however the arguments are spelled. Only one:
+    each compiled program holds memory maps, of which a process may hold 65530
+    (docs/commands.md)."""
+    return _last_train_step(config, rotate, members, member_map, devices)
+
+
+@functools.lru_cache(maxsize=1)
+def _last_train_step(config: ModelConfig, rotate: bool, members: bool,
+                     member_map: bool | None, devices: Devices | None) -> TrainStep:
     return TrainStep(config, rotate=rotate, members=members, member_map=member_map,
                      devices=devices)
