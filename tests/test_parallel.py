@@ -72,8 +72,8 @@ SCRIPT = textwrap.dedent("""
     # A sweep of 4 members (n in {1, 2} x 2 seeds), and its evaluation.
     members = sweep_members.plan_members([1, 2], "partial", [3, 4])
     results = sweep.fit_sweep(sweep_members.sweep_model_config(config, members), hotel,
-                              TrainConfig(epochs=1, batch_size=4, seed=3, max_train_windows=8),
-                              members, f"{tmp}/sweep", eval_samples=2, max_eval_windows=4,
+                              TrainConfig(epochs=1, batch_size=4, seed=3, max_train_windows=4),
+                              members, f"{tmp}/sweep", eval_samples=2, max_eval_windows=2,
                               devices=devices)
     losses = WorkDir(f"{tmp}/sweep").read_metrics()[-1]["loss"]
     out.update(sweep_losses=[losses[m.name] for m in members],
