@@ -197,8 +197,8 @@ def test_a_checkpoint_that_cannot_be_written_is_one_line_and_never_used(tmp_path
                          f"the same command starts fresh in {tmp_path}"), failed.stderr
     assert "Traceback" not in failed.stderr
     assert not load_epochs(tmp_path)
-    rerun = _train(tmp_path, signum=signal.SIGTERM, at=1)      # a start is all it takes
-    assert rerun.returncode == 130 and "starting fresh" in rerun.stderr, rerun.stderr
+    rerun = _train(tmp_path)
+    assert rerun.returncode == 0 and "starting fresh" in rerun.stderr, rerun.stderr
 
 
 def test_a_writer_thread_still_reporting_the_failure_is_not_heard_after_it(capfd):
