@@ -102,35 +102,58 @@ def release_spread(s: Scored) -> dict[str, Ratio]:
             "release_foe_std": spread(errors[:, :, -1])}
 
 
-def kde_log_density(samples: np.ndarray, point: np.ndarray) -> float:
-    """log density at `point` (2,) of scipy's Gaussian KDE (Scott bandwidth) over samples (K, 2).
+def kde_log_densities(samples: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(G,) log density at each point (G, 2) of a Gaussian KDE over its samples (K, G, 2), as
+    scipy.stats.gaussian_kde computes it (Scott's bandwidth), for all G at once; clipped
+    below at KDE_LOG_DENSITY_FLOOR.
 
     Samples that span less than a plane (all equal, or collinear: GST (D) often samples the
-    same graph K times) have no density off their support: the log density is the floor.
+    same graph K times) have no density off their support: the floor, where scipy's Cholesky
+    factorisation of their covariance fails.
     """
-    # Imported here: scipy.stats takes longer to import than the rest of a command's start-up
-    # beside jax, and only an evaluation with the KDE score needs it.
-    from scipy.stats import gaussian_kde
+    samples, points = np.asarray(samples, np.float64), np.asarray(points, np.float64)
+    k = samples.shape[0]
+    # Scott's rule in 2-D: the kernels' covariance is the samples' (ddof 1) times K^(-1/3);
+    # scipy scales the covariance's Cholesky factor by K^(-1/6).
+    factor = float(k) ** (-1.0 / 6.0)
+    deviations = samples - samples.mean(axis=0)
+    covariance = np.einsum("kgi,kgj->gij", deviations, deviations) / (k - 1)     # (G, 2, 2)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        # The lower Cholesky factor [[l00, 0], [l10, l11]], scaled by the bandwidth.
+        l00 = np.sqrt(covariance[:, 0, 0])
+        l10 = covariance[:, 1, 0] / l00
+        l11_squared = covariance[:, 1, 1] - l10 * l10
+        spans_a_plane = (covariance[:, 0, 0] > 0) & (l11_squared > 0)
+        l00, l10, l11 = l00 * factor, l10 * factor, np.sqrt(l11_squared) * factor
 
-    try:
-        log_density = float(gaussian_kde(samples.T).logpdf(point)[0])
-    except np.linalg.LinAlgError:
-        return KDE_LOG_DENSITY_FLOOR
-    return max(log_density, KDE_LOG_DENSITY_FLOOR) if np.isfinite(log_density) else KDE_LOG_DENSITY_FLOOR
+        def whitened(v):
+            """L^-1 v, v (..., G, 2): samples and points each, as scipy whitens them."""
+            first = v[..., 0] / l00
+            return np.stack([first, (v[..., 1] - l10 * first) / l11], axis=-1)
 
+        residuals = whitened(points) - whitened(samples)                          # (K, G, 2)
+        log_kernels = -0.5 * np.sum(residuals ** 2, axis=-1)                       # (K, G)
+        log_norm = -np.log(2 * np.pi) - np.log(l00) - np.log(l11)
+        peak = np.max(log_kernels, axis=0)
+        log_density = (peak + np.log(np.mean(np.exp(log_kernels - peak), axis=0))
+                       + log_norm)
+    valid = spans_a_plane & np.isfinite(log_density)
+    return np.where(valid, np.maximum(log_density, KDE_LOG_DENSITY_FLOOR),
+                    KDE_LOG_DENSITY_FLOOR)
 
 
 def kde_nll(s: Scored) -> dict[str, Ratio]:
     """Trajectron++ KDE NLL: per pedestrian, minus the mean over steps of the clipped log
-    density of the truth under the K samples. scipy's 2-D KDE needs more samples than
-    dimensions: none with K <= 2."""
+    density of the truth under the K samples. A 2-D KDE needs more samples than dimensions:
+    none with K <= 2."""
     if s.pred.shape[0] <= 2:
         return {}
-    pred, truth = np.asarray(s.pred, np.float64), np.asarray(s.truth, np.float64)
-    total = 0.0
-    for b, n in zip(*np.nonzero(np.asarray(s.scored_mask) > 0)):
-        steps = [kde_log_density(pred[:, b, t, n], truth[b, t, n]) for t in range(pred.shape[2])]
-        total -= float(np.mean(steps))
+    scenes, pedestrians = np.nonzero(np.asarray(s.scored_mask) > 0)
+    pred = np.asarray(s.pred, np.float64)[:, scenes, :, pedestrians]   # (S, K, P, 2)
+    truth = np.asarray(s.truth, np.float64)[scenes, :, pedestrians]    # (S, P, 2)
+    log_densities = kde_log_densities(
+        np.moveaxis(pred, 1, 0).reshape(pred.shape[1], -1, 2), truth.reshape(-1, 2))
+    total = -np.sum(np.mean(log_densities.reshape(truth.shape[:2]), axis=1))
     return {"kde_nll": Ratio(np.float64(total), s.count)}
 
 

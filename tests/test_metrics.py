@@ -70,11 +70,14 @@ def test_kde_nll_matches_the_gaussian_kde_formula():
     diffs = point - samples
     kernels = np.exp(-0.5 * np.einsum("ki,ij,kj->k", diffs, inverse, diffs)) / (2 * np.pi * np.sqrt(det))
     expected = np.log(kernels.mean())
-    assert metrics.kde_log_density(samples, point) == pytest.approx(expected, rel=1e-6)
+    densities = metrics.kde_log_densities(
+        np.stack([samples, samples, np.ones((20, 2))], axis=1),
+        np.stack([point, point + 100, point]))
+    assert densities[0] == pytest.approx(expected, rel=1e-6)
     # Far from all samples the log density is clipped at -20.
-    assert metrics.kde_log_density(samples, point + 100) == metrics.KDE_LOG_DENSITY_FLOOR
+    assert densities[1] == metrics.KDE_LOG_DENSITY_FLOOR
     # Identical samples (GST (D) drawing one graph K times) have no density: the floor.
-    assert metrics.kde_log_density(np.ones((20, 2)), point) == metrics.KDE_LOG_DENSITY_FLOOR
+    assert densities[2] == metrics.KDE_LOG_DENSITY_FLOOR
 
     pred = np.broadcast_to(samples[:, None, None, None, :], (20, 1, P, 1, 2))
     truth = np.broadcast_to(point, (1, P, 1, 2))
@@ -82,6 +85,34 @@ def test_kde_nll_matches_the_gaussian_kde_formula():
     assert sums["kde_nll"].count == 1
     assert sums["kde_nll"].total == pytest.approx(-expected, rel=1e-6)
     assert metrics.kde_nll(scored(pred[:2], truth, np.ones((1, 1)))) == {}   # K = 2: no KDE
+
+
+def test_kde_log_densities_are_scipys_gaussian_kde_point_by_point():
+    """All groups at once, against scipy.stats.gaussian_kde one group at a time: clouds of
+    3, 4 and 20 samples, round, stretched and slanted, at points near and far, and samples
+    that span no plane (identical, or on a line: scipy's Cholesky factorisation fails)."""
+    from scipy.stats import gaussian_kde
+
+    rng = np.random.default_rng(1)
+    for k in (3, 4, 20):
+        samples = rng.normal(size=(k, 300, 2)) * rng.uniform(0.01, 2.0, size=(300, 2))
+        samples[..., 1] += rng.uniform(-3.0, 3.0, size=300) * samples[..., 0]
+        points = (samples.mean(axis=0) + rng.normal(size=(300, 2)) * samples.std(axis=0)
+                  * rng.uniform(0.1, 5.0, size=(300, 1)))
+        samples[:, 0] = [1.5, -2.0]
+        samples[:, 1] = np.linspace(0.0, 1.0, k)[:, None] * [1.0, 0.5] + [3.0, 1.0]
+        expected = []
+        for group in range(samples.shape[1]):
+            try:
+                value = float(gaussian_kde(samples[:, group].T).logpdf(points[group])[0])
+            except np.linalg.LinAlgError:
+                value = -np.inf
+            expected.append(max(value, metrics.KDE_LOG_DENSITY_FLOOR)
+                            if np.isfinite(value) else metrics.KDE_LOG_DENSITY_FLOOR)
+        densities = metrics.kde_log_densities(samples, points)
+        np.testing.assert_allclose(densities, expected, rtol=1e-9, atol=1e-9)
+        assert densities[0] == densities[1] == metrics.KDE_LOG_DENSITY_FLOOR
+        assert np.mean(densities > metrics.KDE_LOG_DENSITY_FLOOR) > 0.5
 
 
 def test_collisions_count_pairs_closer_than_10_cm():
