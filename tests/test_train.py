@@ -40,6 +40,7 @@ PAPER = ModelConfig()
 # What the training tests check does not depend on the encoder's depth; one layer compiles
 # about a fifth faster than the paper's three.
 MODEL = ModelConfig(encoder_layers=1)
+ZARA1 = DataConfig(scene="zara1")
 TINY_RUN = ["--scene", "zara1", "--epochs", "3", "--batch-size", "4", "--max-train-windows",
             "12", "--checkpoint-every", "1", "--encoder-layers", "1"]
 
@@ -74,7 +75,7 @@ def _train(workdir: Path, kill_after: int = 0) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def fixed_step():
-    window_set = data.load_split(DataConfig(scene="zara1"), "train")
+    window_set = data.load_split(ZARA1, "train")
     step = next(iter(data.training_batches(window_set.subset(range(4)), batch_size=4, seed=0,
                                            epoch=1)))
     assert len(step.micro_batches) == 1                     # zara1's first windows are small
@@ -83,7 +84,6 @@ def fixed_step():
 
 # A run of TINY_RUN's configuration: what a stopped or faulty run, resumed, must equal.
 FAULT_RUN = TrainConfig(epochs=3, batch_size=4, max_train_windows=12, checkpoint_every=1)
-ZARA1 = DataConfig(scene="zara1")
 
 
 @pytest.fixture(scope="module")
@@ -199,7 +199,7 @@ def test_a_packed_step_equals_the_same_windows_in_one_padded_batch():
     (or, as on a GPU, one micro-batch padded beyond the largest), give the loss and gradients
     of the same windows, with the same random draws (rotation, Gumbel noise, dropout),
     computed in one batch padded to the largest."""
-    small = list(data.load_split(DataConfig(scene="zara1"), "test").windows[:5])
+    small = list(data.load_split(ZARA1, "test").windows[:5])
     large = [w for w in data.load_split(DataConfig(scene="univ"), "test").windows
              if w.num_observed > data.SHARED_MICRO_BATCH_MAX and w.num_pedestrians <= 32][:3]
     windows, index = small + large, [11, 3, 7, 0, 5, 2, 9, 4]
@@ -264,7 +264,7 @@ def test_fit_stops_on_non_finite_and_names_the_batch(tmp_path, fixed_step, monke
     monkeypatch.setattr(data, "training_batches", lambda *a, **k: iter([fixed_step, poisoned]))
     config = TrainConfig(epochs=2, batch_size=8, max_train_windows=8, checkpoint_every=1)
     with pytest.raises(NonFiniteError, match="epoch 1, batch 1"):
-        fit(MODEL, DataConfig(scene="zara1"), config, tmp_path / "run")
+        fit(MODEL, ZARA1, config, tmp_path / "run")
     assert not (tmp_path / "run" / "checkpoints" / "1").exists()
 
 
