@@ -14,6 +14,7 @@ from gst_jax.simulate.crowdnav.environment import (COLLISION, DISCOMFORT, NOTHIN
 from gst_jax.stream import Regions, StreamModel
 
 ENV = CrowdNav(num_humans=4)
+RESET = jax.jit(ENV.reset)
 PARAMS = EnvParams()
 FAR = 100.0
 
@@ -26,7 +27,7 @@ def step_env():
 def _state(robot=(0.0, 0.0), goal=(0.0, 8.0), humans=(), radius=0.3, time=0.0, potential=None):
     """A state with the robot at rest at `robot` and the listed humans (the others far away),
     all at rest and heading for where they stand."""
-    _, state = ENV.reset(jax.random.key(0), PARAMS)
+    _, state = RESET(jax.random.key(0), PARAMS)
     position = np.full((ENV.num_humans, 2), FAR) + np.arange(ENV.num_humans)[:, None] * 10
     position[:len(humans)] = np.reshape(humans, (-1, 2))
     robot, goal = jnp.asarray(robot, jnp.float32), jnp.asarray(goal, jnp.float32)
@@ -201,7 +202,7 @@ def test_step_starts_a_new_episode_where_one_ends_and_vmaps():
     _, after, _, done, _ = jax.jit(ENV.step)(jax.random.key(1), state, jnp.zeros(2), PARAMS)
     assert bool(done) and int(after.steps) == 0 and float(after.time) == 0.0
     keys = jax.random.split(jax.random.key(2), 8)
-    obs, states = jax.vmap(ENV.reset, in_axes=(0, None))(keys, PARAMS)
+    obs, states = jax.jit(jax.vmap(ENV.reset, in_axes=(0, None)))(keys, PARAMS)
     obs, states, reward, done, _ = jax.jit(jax.vmap(ENV.step, in_axes=(0, 0, 0, None)))(
         keys, states, jnp.zeros((8, 2)), PARAMS)
     assert obs.spatial_edges.shape == (8, ENV.num_humans, 12) and reward.shape == (8,)
@@ -305,12 +306,12 @@ def test_truth_predictions_are_the_positions_the_humans_then_take(reactive):
     env = CrowdNav(6, environment.TRUTH, reactive=reactive)
     params = PARAMS.replace(goal_change_chance=0.0)
     _, state = env.reset(jax.random.key(3), params)
-    step = jax.jit(env.step_env)
+    step, truth = jax.jit(env.step_env), jax.jit(env._truth)
     positions, futures = [], []
     for t in range(12):
         _, state, _, _, _ = step(jax.random.key(t), state, jnp.array([0.3, 0.1]), params)
         positions.append(np.asarray(state.human_position))
-        futures.append(np.asarray(env._truth(state, params)))
+        futures.append(np.asarray(truth(state, params)))
     for t in range(6):
         for k in range(5):
             np.testing.assert_allclose(futures[t][:, k], positions[t + k + 1], atol=1e-5)

@@ -20,7 +20,10 @@ from gst_jax.model.selector import group_to_head, head_totals
 from gst_jax.rollout import RolloutNoise, rollout, rollout_with_noise
 from gst_jax.testing.release import batch_loss
 
-CONFIG = ModelConfig(num_edge_heads=4, max_edge_heads=16)
+# One encoder layer: each layer masks and pads as the first does, and deeper programs only
+# compile longer.
+CONFIG = ModelConfig(num_edge_heads=4, max_edge_heads=16, encoder_layers=1)
+INIT = jax.jit(init_params, static_argnums=0)
 T, N = 20, 5
 
 
@@ -48,7 +51,7 @@ def walk():
 
 @pytest.fixture(scope="module")
 def params():
-    return init_params(CONFIG, jax.random.key(0))
+    return INIT(CONFIG, jax.random.key(0))
 
 
 def random_noise(key, batch_size, num_nodes, config=CONFIG) -> RolloutNoise:
@@ -231,7 +234,7 @@ def test_traced_n_matches_a_program_built_for_that_n(params, walk):
 
     swept = jax.jit(jax.vmap(one))(heads)
     for k, n in enumerate([0, 1, 2, 4]):
-        exact = ModelConfig(num_edge_heads=n)                    # head_slots = max(n, 1)
+        exact = dataclasses.replace(CONFIG, num_edge_heads=n, max_edge_heads=0)  # max(n, 1) slots
         small_noise = dataclasses.replace(
             noise, gumbel_obs=noise.gumbel_obs[..., :exact.head_slots, :],
             gumbel_pred=noise.gumbel_pred[..., :exact.head_slots, :])
@@ -248,7 +251,7 @@ def test_tcn_readout_predicts_from_observations_only_without_nan(walk):
     mask[:, :, 2] = 0
     for output_type in ("deterministic", "gaussian"):
         config = dataclasses.replace(CONFIG, temporal="tcn", output=output_type)
-        params = init_params(config, jax.random.key(0))
+        params = INIT(config, jax.random.key(0))
         noise = random_noise(jax.random.key(9), 1, N, config)
         batch = scene_batch(positions, mask)
         output = run(params, batch, noise, hard=False, config=config)

@@ -50,7 +50,8 @@ def test_a_neighbourhood_gives_no_probability_outside_the_candidates():
     batch = gst_jax.make_batch(_walkers(12))
     nearest = dataclasses.replace(config, candidates=4)
     controls = gst_jax.Controls.from_config(nearest)
-    probs = observed_edge_probabilities(params, batch, nearest, controls)   # (B, T, N, G, N+1)
+    probs = jax.jit(observed_edge_probabilities, static_argnums=2)(
+        params, batch, nearest, controls)                                  # (B, T, N, G, N+1)
     active = probs[..., :config.num_edge_heads, :]
     np.testing.assert_allclose(active.sum(-1)[batch.node_mask[..., None] > 0], 1.0, atol=1e-5)
     outside = (active[..., :-1] > 0).sum(-1)             # people with probability, per head

@@ -15,6 +15,8 @@ from gst_jax.testing import orca_reference
 
 STEP_S = 0.25
 PARAMS = OrcaParams(time_horizon=5.0, max_neighbours=10, neighbour_dist=10.0)
+# One program per crowd size and precision, not one eager compile per operation.
+ORCA = jax.jit(orca_velocities, static_argnames=("params", "step_s"))
 
 
 def _orca(position, velocity, preferred, radius=0.31, max_speed=1.0, present=None,
@@ -23,7 +25,7 @@ def _orca(position, velocity, preferred, radius=0.31, max_speed=1.0, present=Non
     count = len(position)
     present = np.ones(count, bool) if present is None else np.asarray(present)
     as_array = lambda a: jnp.asarray(np.asarray(a, np.float64))
-    return np.asarray(orca_velocities(
+    return np.asarray(ORCA(
         as_array(position), as_array(velocity), jnp.full(count, radius),
         jnp.full(count, max_speed), as_array(preferred), jnp.asarray(present), params, STEP_S))
 

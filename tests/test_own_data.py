@@ -111,8 +111,10 @@ def test_fine_tuning_starts_from_the_given_parameters(tmp_path, at_model_rate):
     step = next(iter(data.training_batches(data.load_split(config, "train").subset(range(8)),
                                            batch_size=8, seed=train_config.seed, epoch=1)))
     hparams = hparams_for_epoch(source.model_config, train_config, 1)
-    loss, _ = make_train_step(source.model_config).loss_and_grads(
-        source.params, step_key(train_config.seed, 1, 0), step, hparams)
+    train_step = make_train_step(source.model_config)    # fit's, with its compiled programs
+    # Placed as fit places them: unplaced (uncommitted) arrays would compile the step again.
+    loss, _ = train_step.loss_and_grads(*map(train_step.place, (
+        source.params, step_key(train_config.seed, 1, 0))), step, train_step.place(hparams))
     assert summary["final_loss"] == pytest.approx(float(loss), rel=1e-5)
     with pytest.raises(RunError, match="another architecture"):
         fit(ModelConfig(temporal="tcn"), config, train_config, tmp_path / "tcn")
