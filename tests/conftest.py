@@ -15,8 +15,12 @@ import tempfile
 # of a training step took 57 s at the default level and 27 s at level 0 (2-core CPU), the
 # loss the same; XLA:CPU's older (non-MLIR) fusion emitters compile a training step's
 # programs in 8-11 s of backend time against 14-17 s (tests/conftest.py's flags, 2-core AMD
-# EPYC, jaxlib 0.10.2), the results equal within the suite's tolerances.
-SUITE_XLA_FLAGS = ["--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false"]
+# EPYC, jaxlib 0.10.2), the results equal within the suite's tolerances. One LLVM module per
+# program, not one split for parallel code generation: with a worker per core there is no core
+# to spare, and the first call of a one-layer training step took 5.9 s of CPU against 6.5 s
+# (its steps 0.85 s against 1.0 s, with the same loss; quiet 2-core EPYC, one core).
+SUITE_XLA_FLAGS = ["--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false",
+                   "--xla_cpu_parallel_codegen_split_count=1"]
 USER_XLA_FLAGS = os.environ.get("XLA_FLAGS", "")
 os.environ["XLA_FLAGS"] = " ".join([USER_XLA_FLAGS, *SUITE_XLA_FLAGS]).strip()
 
