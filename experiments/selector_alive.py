@@ -18,20 +18,22 @@ import jax
 import numpy as np
 
 from gst_jax import data
-from gst_jax.config import DataConfig
+from gst_jax.config import CROWD_SCENES, DataConfig
 from gst_jax.model import Controls
 from gst_jax.rollout import observed_edge_probabilities
 from gst_jax.runs import load_model
+
+# One program per batch shape, whichever scene the batch comes from.
+PROBABILITIES = jax.jit(observed_edge_probabilities, static_argnums=2)
 
 
 def alive_share(run, scene: str) -> dict:
     """Over `scene`'s paper test windows: how many (window, observed step, target) are valid,
     and the share of them with a non-zero probability on some person (any active head)."""
     config, controls = run.model_config, Controls.from_config(run.model_config)
-    probabilities = jax.jit(observed_edge_probabilities, static_argnums=2)
     targets = alive = 0
     for batch in data.evaluation_batches(data.load_split(DataConfig(scene=scene), "test")):
-        probs = np.asarray(probabilities(run.params, batch, config, controls))  # (B, T, N, G, N+1)
+        probs = np.asarray(PROBABILITIES(run.params, batch, config, controls))  # (B, T, N, G, N+1)
         on_people = probs[..., :max(config.num_edge_heads, 1), :-1].sum(axis=(-2, -1))
         valid = np.asarray(batch.node_mask)[:, :config.obs_len] > 0
         valid &= np.asarray(batch.scene_mask)[:, None, None] > 0
@@ -44,8 +46,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model", help="a run directory or pretrained:NAME")
     parser.add_argument("--epoch", type=int, help="checkpoint epoch of a run (default: its own)")
-    parser.add_argument("--scenes", nargs="+", default=["eth", "hotel", "univ", "zara1", "zara2",
-                                                        "lcas", "wildtrack"])
+    parser.add_argument("--scenes", nargs="+", default=list(CROWD_SCENES),
+                        help="test splits to measure (default: the seven of the general model)")
     args = parser.parse_args()
     run = load_model(args.model, args.epoch)
     print(json.dumps({scene: alive_share(run, scene) for scene in args.scenes}))
