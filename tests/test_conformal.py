@@ -90,6 +90,25 @@ def test_aci_equals_reference(alpha, gamma, window, in_force, batch):
         assert np.isinf(expected["radii"][1:]).any() and (expected["radii"] == 0).any()
 
 
+def test_aci_started_from_calibration_scores_holds_the_last_window_of_them():
+    """init(scores=...): the window holds the last `window` calibration scores, the radius is
+    their ceil((1 - alpha) n)-th smallest at level alpha, and updates go on from there as
+    from a window filled by updates."""
+    scores = np.random.default_rng(3).permutation(np.arange(1.0, 81.0))
+    method = conformal.aci(0.1, 0.01, window=50)
+    state = method.init(scores=scores)
+    assert int(state.count) == 50 and float(state.level) == pytest.approx(0.1)
+    np.testing.assert_array_equal(np.sort(np.asarray(state.ordered)), np.sort(scores[-50:]))
+    assert float(state.radius) == np.sort(scores[-50:])[45 - 1]
+    filled = method.init()
+    filled, _ = method.update(filled, scores, None, jnp.asarray(np.inf))
+    filled = filled._replace(level=state.level, radius=state.radius)
+    after, radius = method.update(state, jnp.asarray([0.5, 90.0]))
+    expected, expected_radius = method.update(filled, jnp.asarray([0.5, 90.0]))
+    assert float(radius) == float(expected_radius)
+    np.testing.assert_array_equal(np.asarray(after.ordered), np.asarray(expected.ordered))
+
+
 @pytest.mark.parametrize("batch", conformal.BATCH_MODES)
 @pytest.mark.parametrize("loss, output, r_max", [("consistent", "sample", np.inf),
                                                  ("consistent", "mean", np.inf),

@@ -80,7 +80,9 @@ def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000,
     scores; alpha: target miscoverage, gamma: step of the level; batch: "sequential" (one
     step per valid score) or "mean" (one step per update, with the batch's miss fraction).
 
-    init(dtype=None) -> ACIState: level alpha, no scores, radius +inf (nothing seen yet).
+    init(dtype=None, scores=None) -> ACIState: level alpha, no scores, radius +inf (nothing
+      seen yet); or, given calibration scores (n,), a window holding them (the last `window`)
+      and their (1 - alpha) quantile as the radius.
     update(state, scores (B,), mask (B,) = None, radius_in_force = None) -> (state, radius):
       each valid score misses when it is above the radius in force (`state.radius`, or
       `radius_in_force`, () or (B,), the radii issued with the predictions these scores
@@ -98,12 +100,19 @@ def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000,
         raise ValueError(f"window must be >= 1 (got {window}) and batch one of {BATCH_MODES} "
                          f"(got {batch!r})")
 
-    def init(dtype=None) -> ACIState:
+    def init(dtype=None, scores: jax.Array | None = None) -> ACIState:
         level = jnp.asarray(alpha, dtype or float)
-        return ACIState(level=level, radius=jnp.asarray(jnp.inf, level.dtype),
-                        scores=jnp.zeros((window,), level.dtype),
-                        ordered=jnp.full((window,), jnp.inf, level.dtype),
-                        count=jnp.zeros((), jnp.int32), head=jnp.zeros((), jnp.int32))
+        state = ACIState(level=level, radius=jnp.asarray(jnp.inf, level.dtype),
+                         scores=jnp.zeros((window,), level.dtype),
+                         ordered=jnp.full((window,), jnp.inf, level.dtype),
+                         count=jnp.zeros((), jnp.int32), head=jnp.zeros((), jnp.int32))
+        if scores is None:
+            return state
+        scores = jnp.asarray(scores, level.dtype)
+        carry, _ = jax.lax.scan(push, (state.scores, state.ordered, state.count, state.head),
+                                (scores, jnp.ones(scores.shape, bool)))
+        return state._replace(radius=_aci_radius(level, carry[1], carry[2]),
+                              scores=carry[0], ordered=carry[1], count=carry[2], head=carry[3])
 
     def push(carry, score_and_valid):
         scores, ordered, count, head = carry
