@@ -1,9 +1,9 @@
 """Test-session settings: one persistent XLA compilation cache for this process and the
 commands the tests start, so that a program several tests build compiles once; programs
 compiled at LLVM's lowest optimisation level, since the suite's time goes to compiling them,
-not to running them; and the compiled programs of each test file let go after it, since
-every program holds memory maps and the whole suite in one process would otherwise approach
-Linux's limit of 65530 (docs/commands.md), where XLA aborts."""
+not to running them; the longest test files first; and the compiled programs let go after a
+test file once a worker holds many memory maps, since every program holds some and Linux's
+limit is 65530 (docs/commands.md), where XLA aborts."""
 
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ os.environ["XLA_FLAGS"] = " ".join([USER_XLA_FLAGS, *SUITE_XLA_FLAGS]).strip()
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
+from gst_jax import compiles  # noqa: E402
 from gst_jax.training import step  # noqa: E402
 
 CACHE = os.path.join(tempfile.gettempdir(), f"gst_jax_tests_xla_cache_{os.getuid()}")
@@ -35,10 +36,30 @@ os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
+# Worker processes stay far below Linux's limit of 65530 memory maps: no test file added more
+# than 5,400 of them, and a worker held 10,300 at most after its files (2-core EPYC, 599 tests).
+MAPS_KEPT = 30_000
+# The longest files (a worker's seconds on the 2-core VM: 160, 109, 102, 90, 74, 66, 58, 54)
+# start first, so that no worker is left with one of them while the other has finished.
+LONGEST_FIRST = ("test_train.py", "test_stops_and_faults.py", "test_parallel.py",
+                 "test_docs.py", "test_own_data.py", "test_parity.py", "test_sweep.py",
+                 "test_pretrained.py")
+
+
+def pytest_collection_modifyitems(items):
+    def rank(item):
+        name = item.path.name
+        return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+    items.sort(key=rank)                     # stable: each file's tests keep their order
+
 
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
+    """After a test file, let its compiled programs go once the worker holds more than
+    MAPS_KEPT memory maps; below that the next file reuses them (and their traces)."""
     yield
-    step._last_train_step.cache_clear()
-    jax.clear_caches()
-    gc.collect()
+    maps = compiles.memory_maps()
+    if maps is None or maps[0] > MAPS_KEPT:
+        step._last_train_step.cache_clear()
+        jax.clear_caches()
+        gc.collect()
