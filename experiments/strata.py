@@ -38,12 +38,13 @@ FEATURES = {"nonlinearity": "distance of the true endpoint from the CV extrapola
             "neighbours": "most people within 2 m at one observed step"}
 
 
-def records_of(model: str, scene: str, out: Path, progress: Progress, split: str = "test"
-               ) -> dict[str, np.ndarray]:
-    """The per-pedestrian records of `model` on `scene`'s paper `split` (cached); "val" is
-    paper-val's, the end of each file's paper train windows (those the shipped models were
-    trained on: in-sample for them)."""
-    name = f"strata-{model.split(':')[-1]}-{scene}" + ("" if split == "test" else f"-{split}")
+def records_of(model: str, scene: str, out: Path, progress: Progress, split: str = "test",
+               label: str | None = None) -> dict[str, np.ndarray]:
+    """The per-pedestrian records of `model` on `scene`'s paper `split` (cached as `label`,
+    by default the pretrained model's name); "val" is paper-val's, the end of each file's
+    paper train windows (those the shipped models were trained on: in-sample for them)."""
+    label = label or model.split(":")[-1]
+    name = f"strata-{label}-{scene}" + ("" if split == "test" else f"-{split}")
     path = out / "runs" / f"{name}.npz"
     if path.exists():
         with np.load(path) as cached:

@@ -106,3 +106,19 @@ def test_stratify_counts_each_pedestrian_once_with_paired_intervals():
     noisy = dict(records, model_ade=records["model_ade"] + rng.normal(0, 0.05, n))
     cell = strata.stratify(noisy, "nonlinearity")[-1]["model_minus_cv_ade"]
     assert cell["low"] < -0.1 < cell["high"] < 0
+
+
+def test_the_fallback_rule_is_fixed_on_the_finished_held_out_runs_and_picks_per_person(tmp_path):
+    """experiments/fallback.py: only finished paper-val runs (a summary.json) fix the rule, and
+    on two people whom the observed features tell apart (GST better for the one close to
+    another person, CV for the one alone) the chosen rule gives each the better prediction."""
+    from fallback import choose, held_out_models
+    for scene, finished in (("eth", True), ("hotel", False)):
+        (tmp_path / scene).mkdir()
+        if finished:
+            (tmp_path / scene / "summary.json").write_text("{}")
+    assert held_out_models(tmp_path) == {"eth": str(tmp_path / "eth")}
+    people = {"model_ade": np.array([0.2, 0.9]), "cv_ade": np.array([0.5, 0.4]),
+              "closest": np.array([0.6, 5.0]), "neighbours": np.array([3, 0])}
+    best, scores = choose({"eth": people})
+    assert scores[best] == pytest.approx(0.3)                  # (0.2 + 0.4) / 2
