@@ -32,13 +32,17 @@ THRESHOLDS = {"closest": (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0),
               "neighbours": (1, 2, 3, 4, 6)}
 
 
-def chosen(records: dict, rule: tuple | None) -> np.ndarray:
-    """Per pedestrian, the ADE of the rule's choice (None: GST everywhere)."""
+def keeps_gst(records: dict, rule: tuple | None) -> np.ndarray:
+    """Per pedestrian, whether the rule takes GST's prediction (None: GST everywhere)."""
     if rule is None:
-        return records["model_ade"]
+        return np.ones(records["model_ade"].shape, bool)
     feature, side, threshold = rule
-    keep = records[feature] >= threshold if side == "at least" else records[feature] < threshold
-    return np.where(keep, records["model_ade"], records["cv_ade"])
+    return records[feature] >= threshold if side == "at least" else records[feature] < threshold
+
+
+def chosen(records: dict, rule: tuple | None) -> np.ndarray:
+    """Per pedestrian, the ADE of the rule's choice."""
+    return np.where(keeps_gst(records, rule), records["model_ade"], records["cv_ade"])
 
 
 def rules() -> list[tuple]:
@@ -61,8 +65,7 @@ def rule_text(rule: tuple) -> str:
 
 def gst_share(records: dict, rule: tuple | None) -> float:
     """The share of the pedestrians whose prediction the rule takes from GST."""
-    return float(chosen({**records, "model_ade": np.ones_like(records["model_ade"]),
-                         "cv_ade": np.zeros_like(records["cv_ade"])}, rule).mean())
+    return float(keeps_gst(records, rule).mean())
 
 
 def choose(val: dict) -> tuple[tuple, dict]:
