@@ -111,8 +111,9 @@ def test_stratify_counts_each_pedestrian_once_with_paired_intervals():
 def test_the_fallback_rule_is_fixed_on_the_finished_held_out_runs_and_picks_per_person(tmp_path):
     """experiments/fallback.py: only finished paper-val runs (a summary.json) fix the rule, and
     on two people whom the observed features tell apart (GST better for the one close to
-    another person, CV for the one alone) the chosen rule gives each the better prediction."""
-    from fallback import choose, held_out_models
+    another person, CV for the one alone) the chosen rule gives each the better prediction;
+    a rule is chosen only where it beats both predictors alone."""
+    from fallback import CV_ALONE, choose, difference, held_out_models
     for scene, finished in (("eth", True), ("hotel", False)):
         (tmp_path / scene).mkdir()
         if finished:
@@ -122,3 +123,13 @@ def test_the_fallback_rule_is_fixed_on_the_finished_held_out_runs_and_picks_per_
               "closest": np.array([0.6, 5.0]), "neighbours": np.array([3, 0])}
     best, scores = choose({"eth": people})
     assert scores[best] == pytest.approx(0.3)                  # (0.2 + 0.4) / 2
+    # Where GST is worse for everyone, CV alone is chosen: the rules that give GST to
+    # nobody tie with it, and it is listed first.
+    assert choose({"eth": dict(people, model_ade=people["model_ade"] + 1)})[0] == CV_ALONE
+    # Paired against CV: -0.3 and 0 per person; two scenes alike halve the interval's
+    # variance on their mean.
+    gain = difference({"eth": people, "hotel": people}, best, "cv_ade")
+    half = 1.96 * np.std([-0.3, 0.0], ddof=1) / np.sqrt(2)
+    assert gain["eth"]["mean"] == gain["average"]["mean"] == pytest.approx(-0.15)
+    assert gain["eth"]["high"] == pytest.approx(-0.15 + half)
+    assert gain["average"]["high"] == pytest.approx(-0.15 + half / np.sqrt(2))
