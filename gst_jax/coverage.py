@@ -319,6 +319,8 @@ def exchangeable_coverage(recording: Recording, alpha: float = 0.1, permutations
         order = rng.permutation(len(blocks))
         calibration = np.concatenate([blocks[j] for j in order[:calibrating]])
         scale = _scales(calibration)
+        # conformal.split_radius in NumPy: its jnp ops would compile again for every
+        # calibration size the orders give (hundreds per stream).
         rank = int(np.ceil((len(calibration) + 1) * (1 - alpha)))
         ratios = np.sort(np.max(calibration / scale, axis=1))
         q = ratios[rank - 1] if rank <= len(ratios) else np.inf
