@@ -89,7 +89,7 @@ def _episode(env: CrowdNav, params: EnvParams, planner: Planner, init: PlannerSt
         obs, state = env.reset(reset_key, params)
 
         def step(carry, key):
-            obs, state, planner_state, finished, outcome, ended_at, t = carry
+            obs, state, planner_state, finished, outcome, ended_at, closest, t = carry
             plan_key, env_key = jax.random.split(key)
             action, planner_state = planner(plan_key, planner_state, obs)
             new_obs, new_state, _, done, info = env.step_env(env_key, state, action, params)
@@ -99,17 +99,20 @@ def _episode(env: CrowdNav, params: EnvParams, planner: Planner, init: PlannerSt
             ends = done & ~finished
             outcome = jnp.where(ends, info["outcome"], outcome)
             ended_at = jnp.where(ends, t + 1, ended_at)
-            carry = (obs, state, planner_state, finished | done, outcome, ended_at, t + 1)
+            closest = jnp.where(finished, closest, jnp.minimum(closest, info["min_distance"]))
+            carry = (obs, state, planner_state, finished | done, outcome, ended_at, closest,
+                     t + 1)
             return carry, (state.robot_position, state.human_position, obs.radii.mean())
 
         carry = (obs, state, init, jnp.asarray(False), jnp.asarray(TIMEOUT),
-                 jnp.asarray(steps), jnp.asarray(0))
+                 jnp.asarray(steps), jnp.asarray(jnp.inf), jnp.asarray(0))
         carry, (robot, humans, radii) = jax.lax.scan(step, carry, jax.random.split(run_key,
                                                                                     steps))
         robot = jnp.concatenate([state.robot_position[None], robot])
         humans = jnp.concatenate([state.human_position[None], humans])
         return {"robot": robot, "humans": humans, "goal": state.robot_goal,
-                "outcome": carry[4], "steps": carry[5], "radii_mean": radii.mean()}
+                "outcome": carry[4], "steps": carry[5], "closest_m": carry[6],
+                "radii_mean": radii.mean()}
 
     return episode
 
@@ -149,9 +152,10 @@ def run_episodes(env: CrowdNav, params: EnvParams, planner: Planner, init: Plann
 def episode_measures(episodes: dict, params: EnvParams, intrusion_steps: int = 5,
                      intrusion_distance: float = 0.6) -> dict:
     """Per episode (E,), from its positions (robot (E, S+1, 2), humans (E, S+1, H, 2)),
-    outcome, steps (the step it ended at) and radii_mean (the mean conformal radius the robot
-    was given): outcome, steps, radii_mean, path_length_m and intrusion_ratio (module
-    docstring)."""
+    outcome, steps (the step it ended at), closest_m (the least distance between the robot's
+    surface and a human's before each step of the episode, CrowdNav++'s `min_distance`:
+    negative in a collision) and radii_mean (the mean conformal radius the robot was given):
+    those and path_length_m and intrusion_ratio (module docstring)."""
     steps = episodes["steps"]
     robot, humans = episodes["robot"], episodes["humans"]
     moved = np.linalg.norm(np.diff(robot, axis=1), axis=-1)                  # (E, S)
@@ -163,7 +167,7 @@ def episode_measures(episodes: dict, params: EnvParams, intrusion_steps: int = 5
         ahead = np.linalg.norm(humans[:, k:] - robot[:, :total - k, None], axis=-1)
         near[:, :total - k] |= (ahead < intrusion_distance).any(axis=-1)
     counted = np.arange(total)[None] < steps[:, None]
-    return {"outcome": episodes["outcome"], "steps": steps,
+    return {"outcome": episodes["outcome"], "steps": steps, "closest_m": episodes["closest_m"],
             "radii_mean": episodes["radii_mean"], "path_length_m": (moved * live).sum(axis=1),
             "intrusion_ratio": (near & counted).sum(axis=1) / np.maximum(steps, 1)}
 
@@ -180,6 +184,18 @@ def navigation_measures(measures: dict, params: EnvParams) -> dict:
             "path_length_m": float(measures["path_length_m"].mean()),
             "intrusion_ratio": float(measures["intrusion_ratio"].mean()),
             "mean_radius_m": float(np.nanmean(measures["radii_mean"]))}
+
+
+def per_episode(measures: dict, params: EnvParams) -> dict:
+    """Each episode's outcome ("success", "collision" or "timeout"), time_s (when it ended),
+    closest_m and intrusion_ratio (`episode_measures`) as lists in episode (seed) order, so
+    that two evaluations of the same episodes compare episode by episode
+    (`gst_jax.simulate.crowdnav.paired`)."""
+    names = {REACH_GOAL: "success", COLLISION: "collision", TIMEOUT: "timeout"}
+    return {"outcome": [names[int(o)] for o in measures["outcome"]],
+            "time_s": [round(float(s) * params.step_s, 2) for s in measures["steps"]],
+            "closest_m": [round(float(d), 4) for d in measures["closest_m"]],
+            "intrusion_ratio": [round(float(r), 4) for r in measures["intrusion_ratio"]]}
 
 
 # The measures of a table's columns, as results/navigation.md shows them.
@@ -257,7 +273,8 @@ def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int,
                                               seed=seed, chunk=chunk, keep=gifs,
                                               progress=progress)
     result = {**described, "seed": seed, **navigation_measures(episodes, params),
-              "compile_s": round(compile_s, 1), "run_s": round(run_s, 1)}
+              "compile_s": round(compile_s, 1), "run_s": round(run_s, 1),
+              "per_episode": per_episode(episodes, params)}
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(json.dumps(result, indent=1) + "\n")
     for e in range(min(gifs, count)):
