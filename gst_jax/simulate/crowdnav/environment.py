@@ -285,7 +285,7 @@ class CrowdNav:
         if self.regions is not None:      # a new person's predictions start afresh
             state = state.replace(tracks=state.tracks.replace(
                 feed=conformal.reset_slots(state.tracks.feed, arrived)))
-        return obs, state, reward, done, info
+        return obs, state, reward, done, {**info, "replaced": arrived}
 
     # -- parts ----------------------------------------------------------------------------
     def human_velocities(self, state: EnvState, params: EnvParams) -> jax.Array:
