@@ -21,6 +21,7 @@ from gst_jax.data.protocols import bundled_or_local
 from gst_jax.data.readers import UNITS, parse_columns
 from gst_jax.errors import USER_ERRORS, DataError, Interrupted
 from gst_jax.io.interrupts import stops_end_the_process
+from gst_jax.private_folders import private_folder
 
 if TYPE_CHECKING:
     from gst_jax.parallel import Devices
@@ -98,27 +99,22 @@ COMPILATION_CACHE = Path.home() / ".cache" / "gst_jax" / "xla"
 def use_compilation_cache(directory: str | None = None) -> None:
     """Keep compiled programs in `directory` (--compilation-cache) if given, every program
     however quickly it compiled (`gst_jax.compiles.use_persistent_cache`); else in
-    COMPILATION_CACHE, unless JAX_COMPILATION_CACHE_DIR is set.
+    $JAX_COMPILATION_CACHE_DIR if set, else COMPILATION_CACHE, those that took JAX's 1 s.
+    Each folder must be this user's alone (`gst_jax.private_folders`: DataError otherwise).
 
     A command that computes nothing (`data stats`) must not pay for importing jax: where it
     is not imported yet, jax reads the setting from the environment when it is."""
-    if directory is not None:
-        path = Path(directory).expanduser().absolute()
-        if "jax" in sys.modules:
-            from gst_jax.compiles import use_persistent_cache
-
-            use_persistent_cache(path)
-        else:
-            path.mkdir(parents=True, exist_ok=True)
-            os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
-            os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
-        return
-    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        return
+    chosen = directory if directory is not None else (
+        os.environ.get("JAX_COMPILATION_CACHE_DIR") or COMPILATION_CACHE)
+    path = private_folder(chosen)
     if "jax" in sys.modules:
-        sys.modules["jax"].config.update("jax_compilation_cache_dir", str(COMPILATION_CACHE))
-    else:
-        os.environ["JAX_COMPILATION_CACHE_DIR"] = str(COMPILATION_CACHE)
+        from gst_jax.compiles import use_persistent_cache
+
+        use_persistent_cache(path, 0.0 if directory is not None else None)
+        return
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
+    if directory is not None:
+        os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 
 
 def add_compilation_cache_flag(parser: argparse.ArgumentParser) -> None:
@@ -127,7 +123,8 @@ def add_compilation_cache_flag(parser: argparse.ArgumentParser) -> None:
                         help="keep every compiled program in DIR and load it from there in "
                              "later runs, so that a restarted process does not compile again "
                              "(default: $JAX_COMPILATION_CACHE_DIR if set, else "
-                             "~/.cache/gst_jax/xla, programs that compiled in over 1 s)")
+                             "~/.cache/gst_jax/xla, programs that compiled in over 1 s). It "
+                             "holds machine code: it must be yours, writable by no one else")
 
 
 # Seconds from a stop signal (Ctrl-C, SIGTERM) to the end of a command that has not stopped

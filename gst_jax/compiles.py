@@ -7,6 +7,12 @@ and keeping compiled programs on disk for the next process.
 
     use_persistent_cache("~/.cache/my_robot/xla")    # a restarted process compiles nothing
 
+The persistent cache holds machine code that later processes run, so its folder must be
+this user's alone (`gst_jax.private_folders`), and every entry carries a checksum of its key
+and contents: an entry damaged on disk, or not written through this module (another
+program's, another version's), is compiled afresh and replaced, with a warning, instead of
+being loaded (a damaged executable can kill the process with SIGILL).
+
 Counting also warns before compiling hits Linux's limit on memory maps (below). A program
 loaded from the persistent cache counts too (jax reports it under the same event, with the
 seconds of reading it).
@@ -15,12 +21,18 @@ seconds of reading it).
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import warnings
 from pathlib import Path
 from typing import Iterator
 
 import jax
+from jax._src import compilation_cache as jax_cache
+from jax._src import lru_cache
+from jax._src.compilation_cache_interface import CacheInterface
+
+from gst_jax.private_folders import private_folder
 
 # jax reports every backend compilation under this event name, with its duration.
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
@@ -78,18 +90,79 @@ def count_compiles() -> Iterator[CompileCount]:
         jax.monitoring.unregister_event_duration_listener(counter)
 
 
-def use_persistent_cache(directory: str | os.PathLike) -> None:
-    """Keep every program this process compiles in `directory` (created if need be), and look
-    there before compiling: JAX's persistent compilation cache, set for the whole process.
-    Programs are kept however quickly they compiled (a small model's step may take under
-    JAX's default threshold of 1 s and would otherwise be compiled again by every process).
-    The folder is trusted: whoever can write to it can run code in this process."""
-    path = os.path.abspath(os.path.expanduser(os.fspath(directory)))
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+def use_persistent_cache(directory: str | os.PathLike, min_compile_s: float | None = 0.0
+                         ) -> None:
+    """Keep every program this process compiles in `directory` (created, mode 0700, if need
+    be), and look there before compiling: JAX's persistent compilation cache, set for the
+    whole process, its entries checked (module docstring). Programs are kept however quickly
+    they compiled (`min_compile_s` 0: a small model's step may take under JAX's default
+    threshold of 1 s and would otherwise be compiled again by every process; None keeps
+    JAX's). DataError where the folder is not this user's alone."""
+    path = str(private_folder(directory))
+    check_cache_entries()
+    if min_compile_s is not None:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
     if jax.config.jax_compilation_cache_dir != path:
         jax.config.update("jax_compilation_cache_dir", path)
         # jax decides once per process whether it has a cache: let it decide again.
-        from jax.experimental.compilation_cache import compilation_cache
+        jax_cache.reset_cache()
 
-        compilation_cache.reset_cache()
+
+# A checked entry: this header, the SHA-256 of its key and value, then the value jax stores.
+ENTRY_HEADER = b"gst_jax.xla/1\n"
+
+
+def _digest(key: str, value: bytes) -> bytes:
+    return hashlib.sha256(key.encode() + b"\0" + value).digest()
+
+
+class CheckedCache(CacheInterface):
+    """jax's file cache with a checksum on every entry: `get` returns only what `put` stored
+    under the same key, intact; anything else is a miss, with a warning (once a process)."""
+
+    def __init__(self, base: CacheInterface):
+        self._base = base
+        self._path = base._path
+        self._warned = False
+
+    def get(self, key: str) -> bytes | None:
+        entry = self._base.get(key)
+        if entry is None:
+            return None
+        size = len(ENTRY_HEADER) + hashlib.sha256().digest_size
+        value = entry[size:]
+        if entry[:len(ENTRY_HEADER)] == ENTRY_HEADER and entry[len(ENTRY_HEADER):size] == (
+                _digest(key, value)):
+            return value
+        if not self._warned:
+            self._warned = True
+            warnings.warn(f"the compilation cache {self._path} holds an entry that is damaged "
+                          f"or was not written by gst_jax ({key}): compiling afresh and "
+                          "replacing it (and any more such entries, without a word)",
+                          stacklevel=2)
+        return None
+
+    def put(self, key: str, value: bytes) -> None:
+        # jax puts only after a miss, and its cache keeps an existing entry: remove the one
+        # `get` refused (a race with another process's good entry costs one compile).
+        (Path(self._path) / f"{key}{lru_cache._CACHE_SUFFIX}").unlink(missing_ok=True)
+        self._base.put(key, ENTRY_HEADER + _digest(key, value) + value)
+
+    def clear(self) -> None:
+        self._base.clear()
+
+
+_jax_file_cache = jax_cache.get_file_cache
+
+
+def _checked_file_cache(path: str):
+    made = _jax_file_cache(path)
+    return None if made is None else (CheckedCache(made[0]), made[1])
+
+
+def check_cache_entries() -> None:
+    """Every persistent cache jax opens in this process, whatever set its folder, checks its
+    entries (CheckedCache); a cache already open is opened again."""
+    if jax_cache.get_file_cache is not _checked_file_cache:
+        jax_cache.get_file_cache = _checked_file_cache
+        jax_cache.reset_cache()

@@ -28,9 +28,13 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 from gst_jax import compiles  # noqa: E402
+from gst_jax.private_folders import private_folder  # noqa: E402
 from gst_jax.training import step  # noqa: E402
 
-CACHE = os.path.join(tempfile.gettempdir(), f"gst_jax_tests_xla_cache_{os.getuid()}")
+# The suite's cache is this user's alone, its entries checked, as the commands require.
+CACHE = str(private_folder(os.path.join(tempfile.gettempdir(),
+                                        f"gst_jax_tests_xla_cache_{os.getuid()}")))
+compiles.check_cache_entries()
 os.environ["JAX_COMPILATION_CACHE_DIR"] = CACHE
 os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
 jax.config.update("jax_compilation_cache_dir", CACHE)

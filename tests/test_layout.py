@@ -21,7 +21,8 @@ COMMANDS = {"gst_jax.train", "gst_jax.evaluate", "gst_jax.sweep", "gst_jax.plot"
 # The layers of docs/architecture.md, bottom up: a module may import its own layer and those
 # below. A name ending in "." stands for a package's modules (and the package itself).
 LAYERS = (
-    ("foundation", {"gst_jax.config", "gst_jax.errors", "gst_jax.progress", "gst_jax.compiles"}),
+    ("foundation", {"gst_jax.config", "gst_jax.errors", "gst_jax.progress", "gst_jax.compiles",
+                    "gst_jax.private_folders"}),
     ("data", {"gst_jax.data.", "gst_jax.simulate.crowds", "gst_jax.safe_pickle"}),
     ("numerics", {"gst_jax.graph", "gst_jax.noise", "gst_jax.gumbel", "gst_jax.augment",
                   "gst_jax.parallel", "gst_jax.simulate.agents.orca"}),
