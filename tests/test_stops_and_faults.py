@@ -255,10 +255,45 @@ def test_a_checkpoint_without_a_checksum_is_said_unverified_and_recorded(tmp_pat
                                          "verified; its arrays are finite and it is used"):
         assert checkpointer.restore(state).epoch == 2
     assert json.loads(checksums.read_text()) == recorded      # verified from now on
-    checksums.write_text("{garbled")
-    with pytest.warns(UserWarning, match=r"checksums.json is damaged: no checkpoint of this run "
-                                         "can be verified"):
-        checkpointer.restore(state)
+    checkpointer.close()
+
+
+@pytest.mark.parametrize("damage", ["{garbled", '{"2": 5}', "a folder"])
+def test_a_damaged_checksums_file_verifies_nothing_and_blesses_nothing(tmp_path, damage):
+    """Issue 94: with checksums.json unreadable, a damaged checkpoint was used and its checksum
+    recorded, so every later run trusted it. Now nothing is used or recorded: restore refuses,
+    naming the file and the way out."""
+    checkpointer, state = _saved_epochs(tmp_path)
+    checksums = tmp_path / "checksums.json"
+    array = max((p for p in (tmp_path / "2").rglob("*") if p.is_file()),
+                key=lambda p: p.stat().st_size)
+    array.write_bytes(array.read_bytes()[:-8] + bytes(8))      # the newest checkpoint damaged
+    if damage == "a folder":
+        checksums.unlink()
+        checksums.mkdir()
+    else:
+        checksums.write_text(damage)
+    with pytest.raises(RunError, match=r"checksums.json is damaged, so no checkpoint of this run "
+                                       "can be verified and none is used: put back a good copy, "
+                                       "or delete it"):
+        checkpointer.restore(state, fall_back=True)
+    assert checksums.is_dir() if damage == "a folder" else checksums.read_text() == damage
+    checkpointer.close()
+
+
+def test_checkpoints_whose_checksums_were_lost_are_never_used(tmp_path):
+    """A checkpoint saved over a damaged checksums.json is recorded; those before it are
+    recorded as unverifiable and skipped, not blessed."""
+    checkpointer, state = _saved_epochs(tmp_path)
+    (tmp_path / "checksums.json").write_text("{garbled")
+    with pytest.warns(UserWarning, match="checkpoints before epoch 3 can no longer be verified"):
+        checkpointer.save(3, state, {"run": "a"}, [{"epoch": e} for e in (1, 2, 3)])
+    recorded = json.loads((tmp_path / "checksums.json").read_text())
+    assert recorded["1"] == recorded["2"] == "unverifiable" and len(recorded["3"]) == 64
+    assert checkpointer.restore(state, fall_back=True).epoch == 3
+    checkpointer.discard_after(1)
+    with pytest.raises(RunError, match="epoch 1: its checksum was lost"):
+        checkpointer.restore(state, fall_back=True)
     checkpointer.close()
 
 

@@ -50,7 +50,8 @@ class Checkpointer:
     that the arrays it read are finite and, with `fall_back`, goes back to the newest
     checkpoint that passes both (with a warning). A checkpoint without a recorded checksum (a
     crash between its write and the record, or checksums.json lost) is said to be unverified,
-    used if its arrays are finite, and recorded then.
+    used if its arrays are finite, and recorded then. A damaged checksums.json verifies
+    nothing: `restore` refuses (RunError naming it), and is never made to bless a checkpoint.
     """
 
     def __init__(self, directory: Path, max_to_keep: int = 3, *, create: bool = True):
@@ -117,7 +118,10 @@ class Checkpointer:
     def _restore_verified(self, epoch: int, abstract: Any) -> tuple[Restored | None, str | None]:
         """(the checkpoint, None), or (None, what is wrong with it)."""
         ocp = _orbax()
-        expected = self._read_checksums().get(str(epoch))
+        expected = self._verifiable_checksums().get(str(epoch))
+        if expected == UNVERIFIABLE:
+            return None, (f"its checksum was lost ({self._checksums.name} was damaged before a "
+                          "later checkpoint was saved), so it cannot be verified")
         if expected is not None and expected != self._checksum(epoch):
             return None, "its files do not match the checksum recorded when it was saved"
         items = dict(state=ocp.args.StandardRestore(abstract), config=ocp.args.JsonRestore(),
@@ -182,29 +186,52 @@ class Checkpointer:
             digest.update(path.read_bytes())
         return digest.hexdigest()
 
-    def _read_checksums(self) -> dict:
-        """The recorded checksums; {} (with a warning) where the file is damaged."""
+    def _read_checksums(self) -> dict | None:
+        """The recorded checksums ({} before the first); None where checksums.json cannot be
+        read or is not a record of them."""
         try:
+            if self._checksums.exists() and not self._checksums.is_file():
+                return None
             checksums = json.loads(self._checksums.read_text())
         except FileNotFoundError:
             return {}
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            checksums = None
-        if not isinstance(checksums, dict):
-            warnings.warn(f"{self._checksums} is damaged: no checkpoint of this run can be "
-                          "verified", stacklevel=3)
-            return {}
+        except (OSError, ValueError):
+            return None
+        valid = isinstance(checksums, dict) and all(
+            isinstance(c, str) for c in checksums.values())
+        return checksums if valid else None
+
+    def _verifiable_checksums(self) -> dict:
+        """The recorded checksums; RunError where checksums.json is damaged: then no
+        checkpoint can be verified, and none is used or blessed."""
+        checksums = self._read_checksums()
+        if checksums is None:
+            raise RunError(f"{self._checksums} is damaged, so no checkpoint of this run can be "
+                           "verified and none is used: put back a good copy, or delete it to "
+                           "use the checkpoints unverified (each then checked for finite "
+                           "arrays only)")
         return checksums
 
     def _record_checksum(self, epoch: int) -> None:
-        """Record `epoch`'s checksum, and drop those of checkpoints no longer kept."""
+        """Record `epoch`'s checksum, and drop those of checkpoints no longer kept. Where
+        checksums.json is damaged, the other checkpoints are recorded as UNVERIFIABLE."""
         if jax.process_index() != 0:            # the checksums are written once
             return
         checksums = self._read_checksums()
-        checksums[str(epoch)] = self._checksum(epoch)
         kept = {str(e) for e in self._manager.all_steps()}
+        if checksums is None:
+            warnings.warn(f"{self._checksums} was damaged: the checkpoints before epoch "
+                          f"{epoch} can no longer be verified, and will not be used",
+                          stacklevel=3)
+            checksums = dict.fromkeys(kept, UNVERIFIABLE)
+        checksums[str(epoch)] = self._checksum(epoch)
         write_atomically(self._checksums, json.dumps(
             {e: c for e, c in checksums.items() if e in kept}, indent=1))
+
+
+# A checkpoint's entry in checksums.json once its recorded checksum was lost (the file was
+# damaged when a later checkpoint was saved): it is never used.
+UNVERIFIABLE = "unverifiable"
 
 
 # The longest a failed save waits for the writer threads to finish reporting the failure,
