@@ -416,6 +416,8 @@ def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> Dat
         base, scene=args.scene or base.scene, protocol=protocol,
         data_dir=str(Path(args.data_dir).absolute()) if args.data_dir else base.data_dir,
         drop_off_grid=args.drop_off_grid or base.drop_off_grid)
+    if args.scene and not args.data:                     # a bundled scene, not the run's files
+        config = dataclasses.replace(config, data=None, fps=None, scale=1.0, columns=None)
     if args.data:
         # Stored absolute, but a path into the bundled data stays relative (found anywhere).
         pattern = args.data if bundled_or_local(args.data) != Path(args.data) else str(
@@ -425,6 +427,9 @@ def data_config(args: argparse.Namespace, base: DataConfig | None = None) -> Dat
     elif args.fps or args.units != "m" or args.columns:
         raise DataError("--fps, --units and --columns describe your own files: give them with "
                         "--data")
+    elif config.data:               # named by a model's config.json, not by you: say which
+        say(f"data: {config.data} (the model's own, named by its config; --data or --scene "
+            "reads others)")
     return config
 
 

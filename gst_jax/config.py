@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from typing import Literal
 
 ETH_UCY_SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
@@ -114,6 +115,22 @@ class DataConfig(_FromDict):
     fps: float | None = None
     scale: float = 1.0
     columns: str | None = None
+
+    def __post_init__(self):
+        # A scene names files (eval/<scene>-...json) and may come from any config.json: a name,
+        # never a path.
+        if not isinstance(self.scene, str) or not SCENE_NAME.fullmatch(self.scene):
+            raise ValueError(f"scene must be one of {', '.join(SCENES)} or a name of your own "
+                             f"data (letters, digits, spaces and . _ -, not starting with . or "
+                             f"-, at most 100), got {str(self.scene)[:120]!r}")
+        if self.protocol not in PROTOCOLS:
+            raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got "
+                             f"{str(self.protocol)[:120]!r}")
+
+
+# What a scene's name may be: no path separator, no leading '.' or '-' ('..', a hidden file, a
+# flag), nothing a file name cannot hold (`gst_jax.data.protocols.data_name` makes such names).
+SCENE_NAME = re.compile(r"[^:<>\"/\\|?*\x00-\x1f.-][^:<>\"/\\|?*\x00-\x1f]{0,99}")
 
 
 @dataclasses.dataclass(frozen=True)

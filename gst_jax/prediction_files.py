@@ -47,19 +47,44 @@ def write_predictions(path: Path, window_set: data.WindowSet,
 
     The file appears only when complete (written beside it, then renamed).
     """
-    rows, partial = 0, Path(f"{path}.partial")
-    with open(partial, "w") as out:
-        for batch, positions, predicted_mask in predicted:
-            for b, index in enumerate(np.asarray(batch.window_index)):
-                if not batch.scene_mask[b]:
-                    continue
-                window = window_set[int(index)]
-                lines = _window_rows(int(index), window, positions[:, b], predicted_mask[b],
-                                     grid)
-                out.write("".join(line + "\n" for line in lines))
-                rows += len(lines)
+    rows, partial = 0, partial_path(path)
+    try:
+        with open(partial, "w") as out:
+            for batch, positions, predicted_mask in predicted:
+                for b, index in enumerate(np.asarray(batch.window_index)):
+                    if not batch.scene_mask[b]:
+                        continue
+                    window = window_set[int(index)]
+                    lines = _window_rows(int(index), window, positions[:, b],
+                                         predicted_mask[b], grid)
+                    out.write("".join(line + "\n" for line in lines))
+                    rows += len(lines)
+    except BaseException:             # a full disk, Ctrl-C, SIGTERM: no half file is left
+        partial.unlink(missing_ok=True)
+        raise
     os.replace(partial, path)
     return rows
+
+
+def partial_path(path: Path) -> Path:
+    """Where `write_predictions` writes before the file is complete."""
+    return path.with_name(f"{path.name}.partial")
+
+
+def check_output(path: Path, inputs: Iterable[Path]) -> None:
+    """Refuse, before anything is computed, an output that would destroy something: one that
+    exists and is not a regular file (a folder, a device, a FIFO), or that is one of the
+    `inputs` (the data being predicted); and one whose folder does not exist."""
+    if path.exists() or path.is_symlink():
+        if not path.is_file():
+            raise DataError(f"{path} exists and is not a regular file: --out names the "
+                            "prediction file to write")
+        for data_file in inputs:
+            if data_file.exists() and os.path.samefile(path, data_file):
+                raise DataError(f"{path} is the data being predicted: --out must name another "
+                                "file")
+    if not path.parent.is_dir():
+        raise DataError(f"{path.parent}: no such folder for --out")
 
 
 def _window_rows(index: int, window: data.Window, futures: np.ndarray, predicted: np.ndarray,

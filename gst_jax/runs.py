@@ -88,10 +88,19 @@ def load_run(path: str | Path, epoch: int | None = None) -> Run:
     finally:
         checkpointer.close()
     return Run(name=str(path), model_config=model_config,
-               data_config=DataConfig.from_dict(config["data"]),
+               data_config=stored_data_config(config, path),
                train_config=TrainConfig.from_dict(config["train"]), params=restored.state.params,
                epoch=restored.epoch,
                workdir=workdir)
+
+
+def stored_data_config(config: dict, path: str | Path) -> DataConfig:
+    """A checkpoint's data config, checked (its scene a name, not a path): RunError naming
+    the run otherwise."""
+    try:
+        return DataConfig.from_dict(config["data"])
+    except (TypeError, ValueError) as error:
+        raise RunError(f"{path}: its stored data config: {error}") from None
 
 
 def load_member(path: str | Path, name: str, epoch: int | None = None) -> Run:
@@ -119,7 +128,7 @@ def load_member(path: str | Path, name: str, epoch: int | None = None) -> Run:
     train_config = TrainConfig.from_dict({**config["train"], "seed": member.seed,
                                           "fully_detected_only": member.fully_detected_only})
     return Run(name=f"{path}:{name}", model_config=member_config(model_config, member),
-               data_config=DataConfig.from_dict(config["data"]), train_config=train_config,
+               data_config=stored_data_config(config, path), train_config=train_config,
                params=unstack(restored.state.params, names.index(name)), epoch=restored.epoch,
                workdir=workdir)
 
@@ -136,7 +145,7 @@ def load_weights_run(path: str | Path, epoch: int | None = None) -> Run:
     try:
         data_config = DataConfig.from_dict(config.get("data", {}))
         train_config = TrainConfig.from_dict(config.get("train", {}))
-    except TypeError as error:
+    except (TypeError, ValueError) as error:
         raise RunError(f"{loaded.folder / weights.CONFIG_FILE}: {error}") from None
     return Run(name=str(path), model_config=loaded.model_config, data_config=data_config,
                train_config=train_config, params=loaded.params, epoch=config.get("epoch", 0),

@@ -60,7 +60,11 @@ def data_files(pattern: str) -> list[Path]:
     (e.g. samples/crowd_10hz.txt, from any folder)."""
     path = bundled_or_local(pattern)
     if path.is_file():
+        if path.suffix not in TRACK_SUFFIXES:
+            raise DataError(f"{path}: not a trajectory file (.txt, .csv or .ndjson)")
         return [path]
+    if path.exists() and not path.is_dir():
+        raise DataError(f"{path}: not a regular file or a folder")
     found = path.iterdir() if path.is_dir() else map(Path, glob.glob(pattern))
     files = sorted(p for p in found if p.suffix in TRACK_SUFFIXES and p.is_file())
     if not files:
@@ -100,7 +104,7 @@ def load_split(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()) -> W
     _check(config, split)
     name = f"{config.scene}/{config.protocol}/{split}"
     per_file: list[tuple[Path, list[Window]]] = []
-    for path in _files(config, split):
+    for path in split_files(config, split):
         windows = _cut(path, config, grid)
         if config.protocol == "loo" or split == "all":
             per_file.append((path, kept(windows)))
@@ -117,7 +121,7 @@ def split_frames(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()
     left out."""
     _check(config, split)
     covered = []
-    for path in _files(config, split):
+    for path in split_files(config, split):
         windows = _cut(path, config, grid)
         chosen = (kept(windows) if config.protocol == "loo" or split == "all"
                   else _temporal_split(windows, config, split))
@@ -127,7 +131,7 @@ def split_frames(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()
     return covered
 
 
-def _files(config: DataConfig, split: str) -> list[Path]:
+def split_files(config: DataConfig, split: str) -> list[Path]:
     """The files of `config`'s scene (or own data) that `split` reads."""
     data_dir = Path(config.data_dir) if config.data_dir else default_data_dir()
     if config.data:

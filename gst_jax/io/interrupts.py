@@ -33,6 +33,8 @@ _writing = threading.RLock()    # held while a checkpoint is written
 # What a stop that ends the process before the main thread noticed it leaves behind (the
 # training loop keeps it up to date as it saves).
 _forced_exit_note = ["interrupted"]
+# Files a forced exit removes first (a command's half-written output).
+_removed_on_forced_exit: set[str] = set()
 
 
 def _ours(signum: int) -> bool:
@@ -78,6 +80,17 @@ def set_forced_exit_note(text: str) -> None:
     """What to say if a stop ends the process before the main thread notices it: what the
     last save left and what a rerun will do."""
     _forced_exit_note[0] = text
+
+
+@contextlib.contextmanager
+def removed_on_forced_exit(path: str | os.PathLike) -> Iterator[None]:
+    """Inside the block, a stop that ends the process (`stops_end_the_process`) removes
+    `path` first: an output being written, which the block removes itself on any exception."""
+    _removed_on_forced_exit.add(os.fspath(path))
+    try:
+        yield
+    finally:
+        _removed_on_forced_exit.discard(os.fspath(path))
 
 
 @contextlib.contextmanager
@@ -132,6 +145,9 @@ def stops_end_the_process(grace_s: float) -> Iterator[None]:
             return
         with _writing:                      # a write in progress completes first
             if not done.is_set():
+                for path in list(_removed_on_forced_exit):
+                    with contextlib.suppress(OSError):
+                        os.unlink(path)
                 print(f"\n{_forced_exit_note[0]}", file=sys.stderr, flush=True)
                 os._exit(130)
 

@@ -309,9 +309,14 @@ class WorkDir:
             write_text(self.path / "summary.json", json.dumps(summary, indent=2) + "\n")
 
     def evaluation_path(self, data_config: DataConfig, split: str, epoch: int) -> Path:
-        """eval/<scene>-<protocol>-<split>-e<epoch>.json (the .md beside it)."""
-        return (self.path / "eval"
+        """eval/<scene>-<protocol>-<split>-e<epoch>.json (the .md beside it); never outside
+        eval/, whatever a config names (`DataConfig` keeps scenes to names)."""
+        path = (self.path / "eval"
                 / f"{data_config.scene}-{data_config.protocol}-{split}-e{epoch}.json")
+        if path.parent != self.path / "eval":
+            raise RunError(f"{data_config.scene!r} is not a scene's name: its evaluation "
+                           f"would be written outside {self.path / 'eval'}")
+        return path
 
     def read_evaluation(self, data_config: DataConfig, split: str, epoch: int) -> dict | None:
         path = self.evaluation_path(data_config, split, epoch)

@@ -10,6 +10,8 @@ large for `--memory-budget` samples in chunks; one that cannot fit in the memory
 even one sample at a time, is refused in one line before anything is allocated, and so is a
 process whose memory limit leaves too little for XLA's compiler. A crowd large enough for
 `--candidates` to pay is announced with its expected time and memory before its first batch.
+`--out` never replaces the data it reads nor anything but a regular file, and a failure or a
+stop leaves no partial file behind.
 """
 
 from __future__ import annotations
@@ -17,8 +19,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from gst_jax import cli
+from gst_jax.data.protocols import split_files
 from gst_jax.evaluation import write_run_predictions
+from gst_jax.io.interrupts import removed_on_forced_exit
 from gst_jax.predict import DEFAULT_MEMORY_BUDGET, check_compiler_room
+from gst_jax.prediction_files import check_output, partial_path
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 
@@ -40,9 +45,13 @@ def predict(args) -> None:
     check_compiler_room("python -m gst_jax.predict")         # before anything compiles
     run = load_model(args.model, args.epoch).with_candidates(args.candidates)
     data_config = cli.data_config(args, base=run.data_config)
-    rows = write_run_predictions(run, data_config, args.split, Path(args.out),
-                                 num_samples=args.samples, seed=args.seed, progress=Progress(),
-                                 memory_budget_bytes=int(args.memory_budget * 2 ** 30))
+    out = Path(args.out)
+    check_output(out, split_files(data_config, args.split))
+    with removed_on_forced_exit(partial_path(out)):
+        rows = write_run_predictions(run, data_config, args.split, out,
+                                     num_samples=args.samples, seed=args.seed,
+                                     progress=Progress(),
+                                     memory_budget_bytes=int(args.memory_budget * 2 ** 30))
     cli.say(f"written: {args.out} ({rows} rows: {data_config.scene}, {args.split} split, "
             f"{args.samples} samples of {run.name})")
 
