@@ -31,7 +31,7 @@ from _common import add_results_flags, results_folder
 
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT
-from gst_jax.simulate.crowdnav.navigation import (described_run, environment_for, evaluate,
+from gst_jax.simulate.crowdnav.navigation import (described_run, evaluate_described,
                                                   format_table, record_name, row_label)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
@@ -88,10 +88,9 @@ def run(planner: str, regions: str, scenario: tuple, episodes: int, seed: int, o
     record = found(planner, regions, scenario, episodes, seed, out)
     if record is not None:
         return record
-    fields = described(planner, regions, scenario)
-    env, params = environment_for(fields, load_model(MODEL) if planner == "mpc" else None)
-    mpc = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
-    return evaluate(env, params, mpc, episodes, seed, out, fields)
+    return evaluate_described(described(planner, regions, scenario),
+                              load_model(MODEL) if planner == "mpc" else None,
+                              SamplingMPC.num_plans, episodes, seed, out)
 
 
 def success_half_width(success: list[float], episodes: int) -> tuple[float, float]:

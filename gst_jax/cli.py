@@ -384,6 +384,39 @@ def add_output_flags(parser: argparse.ArgumentParser, *, workdir_help: str,
         add_compilation_cache_flag(parser)
 
 
+def add_humans_flags(parser: argparse.ArgumentParser, *, mix: bool = False) -> None:
+    """--humans, --reactive, --num-humans, --shift: how the navigation task's humans walk
+    (`simulate.crowdnav.environment.CrowdNav`); with `mix`, left out they mean every
+    condition of the training mix (`simulate.crowdnav.crowds.MIX`)."""
+    from gst_jax.simulate.crowdnav.environment import (NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT,
+                                                       EnvParams)
+
+    default = (lambda value: None) if mix else (lambda value: value)
+    said = (lambda value: "the mix's") if mix else (lambda value: value)
+    parser.add_argument("--humans", choices=("orca", "social-force"), default=default("orca"),
+                        help=f"how the humans walk: CrowdNav++'s ORCA or its social force "
+                        f"(default: {said('orca')})")
+    parser.add_argument("--reactive", action="store_true", default=default(False),
+                        help="the humans see the robot (robot.visible)")
+    parser.add_argument("--num-humans", type=positive_int, default=default(20),
+                        help=f"humans (default: {said(20)})")
+    parser.add_argument("--shift", choices=(NO_SHIFT, SPEED_SHIFT, POLICY_SHIFT),
+                        default=default(NO_SHIFT), help=f"from {EnvParams.shift_at_s:g} s on, "
+                        f"humans {EnvParams.speed_factor:g}x faster (speed) or ORCA ones by "
+                        f"social force (policy) (default: {said(NO_SHIFT)})")
+
+
+def crowd_conditions(args: argparse.Namespace) -> tuple:
+    """`add_humans_flags(mix=True)`'s conditions: the mix, or the one the flags name (a flag
+    left out taking the task's default)."""
+    from gst_jax.simulate.crowdnav.crowds import MIX, Condition
+
+    given = {"human_policy": args.humans and args.humans.replace("-", "_"),
+             "reactive": args.reactive, "num_humans": args.num_humans, "shift": args.shift}
+    given = {k: v for k, v in given.items() if v is not None}
+    return (Condition(**given),) if given else MIX
+
+
 def model_spec(spec: str | None) -> str | None:
     """A model name that means the same from any working directory (absolute paths)."""
     if spec is None or spec.startswith("pretrained:"):

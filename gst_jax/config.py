@@ -121,16 +121,13 @@ class DataConfig(_FromDict):
         # never a path.
         if not isinstance(self.scene, str) or not SCENE_NAME.fullmatch(self.scene):
             raise ValueError(f"scene must be one of {', '.join(SCENES)} or a name of your own "
-                             f"data (letters, digits, spaces and . _ -, not starting with . or "
-                             f"-, at most 100), got {str(self.scene)[:120]!r}")
-        if self.protocol not in PROTOCOLS:
-            raise ValueError(f"protocol must be one of {', '.join(PROTOCOLS)}, got "
-                             f"{str(self.protocol)[:120]!r}")
+                             f"data (no / or \\, not starting with . or -, at most 120 "
+                             f"characters), got {str(self.scene)[:120]!r}")
 
 
 # What a scene's name may be: no path separator, no leading '.' or '-' ('..', a hidden file, a
-# flag), nothing a file name cannot hold (`gst_jax.data.protocols.data_name` makes such names).
-SCENE_NAME = re.compile(r"[^:<>\"/\\|?*\x00-\x1f.-][^:<>\"/\\|?*\x00-\x1f]{0,99}")
+# flag), no control character (a shipped model's scene may describe where its data came from).
+SCENE_NAME = re.compile(r"[^/\\\x00-\x1f.-][^/\\\x00-\x1f]{0,119}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -53,8 +53,8 @@ def test_a_model_whose_config_names_a_path_as_its_scene_is_refused_in_one_line(t
     assert done.returncode == 1
     assert done.stderr.strip().splitlines() == [
         f"error: {model}/config.json: scene must be one of eth, hotel, univ, zara1, zara2, lcas, "
-        f"wildtrack, crowd or a name of your own data (letters, digits, spaces and . _ -, not "
-        f"starting with . or -, at most 100), got '../../../../../../{tmp_path}/escape'"]
+        f"wildtrack, crowd or a name of your own data (no / or \\, not starting with . or -, at "
+        f"most 120 characters), got '../../../../../../{tmp_path}/escape'"]
     assert not any(tmp_path.glob("escape*")) and not work.exists()
 
 

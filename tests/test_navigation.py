@@ -15,10 +15,15 @@ from gst_jax import navigate
 from gst_jax.errors import RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
+from gst_jax.data.readers import read_tracks
+from gst_jax.simulate.crowdnav import navigation
+from gst_jax.simulate.crowdnav.crowds import Condition, crowd_rows, person_ids, record_episodes
 from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL,
-                                                   CrowdNav, EnvParams, Observation)
+                                                   SOCIAL_FORCE, SPEED_SHIFT, CrowdNav,
+                                                   EnvParams, Observation, detected_humans)
 from gst_jax.simulate.crowdnav.navigation import (episode_measures, max_steps, navigation_measures,
-                                                  record_name, row_label, run_episodes, summary)
+                                                  per_episode, record_name, row_label,
+                                                  run_episodes, summary)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.stream import Regions
 
@@ -55,14 +60,19 @@ def test_measures_of_crafted_episodes():
     humans = np.full((2, steps + 1, 1, 2), 50.0)
     humans[1, 3, 0] = [0.1, 0.0]                                      # near episode 1's robot
     episodes = {"robot": robot, "humans": humans, "outcome": np.array([REACH_GOAL, COLLISION]),
-                "steps": np.array([4, 3]), "radii_mean": np.array([0.1, 0.3])}
-    measures = navigation_measures(episode_measures(episodes, EnvParams()), EnvParams())
+                "steps": np.array([4, 3]), "closest_m": np.array([0.7, -0.1]),
+                "radii_mean": np.array([0.1, 0.3])}
+    measured = episode_measures(episodes, EnvParams())
+    measures = navigation_measures(measured, EnvParams())
     assert measures["success"] == 0.5 and measures["collision"] == 0.5
     assert measures["navigation_time_s"] == 1.0                      # over the successes
     assert measures["path_length_m"] == 0.5                          # over all episodes
     # Episode 1: steps 0, 1, 2 see the human of step 3 within 5 steps: 3 of 3 steps.
     assert measures["intrusion_ratio"] == 0.5 * (0 + 3 / 3)
     assert max_steps(EnvParams()) == 197                              # CrowdNav++'s timeout
+    assert per_episode(measured, EnvParams()) == {
+        "outcome": ["success", "collision"], "time_s": [1.0, 0.75], "closest_m": [0.7, -0.1],
+        "intrusion_ratio": [0.0, 1.0]}
 
 
 def test_the_command_reports_crowdnavs_measures(tmp_path, capsys):
@@ -219,7 +229,7 @@ def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_m
     """Issue 75's scenarios: every option that changes the humans names the record (runs of
     other settings sit beside each other); a policy shift needs ORCA humans (one line)."""
     seen = {}
-    monkeypatch.setattr(navigate, "evaluate", lambda env, params, planner, count, seed, out,
+    monkeypatch.setattr(navigation, "evaluate", lambda env, params, planner, count, seed, out,
                         described, *rest, **options: seen.update(env=env, **described) or {})
     monkeypatch.setattr(navigate, "summary", lambda result: "")
     navigate.main(["evaluate", "--planner", "truth-mpc", "--reactive", "--num-humans", "35",
@@ -235,3 +245,42 @@ def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_m
     with pytest.raises(SystemExit, match="^error: --shift policy switches ORCA humans"):
         navigate.main(["evaluate", "--planner", "standing-mpc", "--humans", "social-force",
                        "--shift", "policy", "--workdir", str(tmp_path)])
+
+
+def test_the_crowds_written_are_the_positions_the_environment_played(tmp_path):
+    """Issue 90: `navigate crowds` writes what the task's own humans did. The environment
+    replayed step by step from the same keys, with the same planner, gives the positions the
+    file holds (read back as any data file is), for the humans the robot detected; a human
+    replaced at its goal takes a new id."""
+    condition = Condition(SOCIAL_FORCE, reactive=True, num_humans=6, shift=SPEED_SHIFT)
+    steps, params = 40, EnvParams(shift_at_s=2.0)
+    record = record_episodes(condition, 1, seed=7, params=params, steps=steps)
+    ids = person_ids(record["replaced"][0])
+    path = tmp_path / "episode.txt"
+    path.write_text("\n".join(crowd_rows(record["positions"][0], record["detected"][0], ids)))
+
+    env = CrowdNav(6, CONSTANT_VELOCITY, human_policy=SOCIAL_FORCE, reactive=True,
+                   shift=SPEED_SHIFT)
+    planner = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
+    reset_key, run_key = jax.random.split(jax.random.split(jax.random.key(7), 1)[0])
+    obs, state = env.reset(reset_key, params)
+    plan, played, seen = planner.init(), [state.human_position], [detected_humans(state, params)]
+    step = jax.jit(lambda key, state, action: env.step_env(key, state, action, params))
+    for key in jax.random.split(run_key, steps):
+        plan_key, env_key = jax.random.split(key)
+        action, plan = planner(plan_key, plan, obs)
+        obs, state, *_ = step(env_key, state, action)
+        played.append(state.human_position)
+        seen.append(detected_humans(state, params))
+    played, seen = np.asarray(played), np.asarray(seen)
+
+    np.testing.assert_allclose(record["positions"][0], played, atol=1e-5)
+    np.testing.assert_array_equal(record["detected"][0], seen)
+    tracks = read_tracks(path)
+    rows = {(int(f), int(p)): xy for f, p, xy in zip(tracks.frames, tracks.pedestrians,
+                                                    tracks.xy)}
+    expected = {(t, int(ids[t, k])): played[t, k] for t, k in zip(*np.nonzero(seen))}
+    assert rows.keys() == expected.keys() and len(rows) > steps
+    for key, xy in expected.items():
+        np.testing.assert_allclose(rows[key], xy, atol=1e-4)
+    assert (np.diff(ids, axis=0) != 0).sum() == record["replaced"][0].sum()

@@ -57,15 +57,16 @@ MIX = tuple(Condition(policy, reactive, count, shift)
             for shift in shifts for reactive in (False, True) for count in (10, 20, 35))
 
 
-def record_episodes(condition: Condition, count: int, seed: int, params: EnvParams = EnvParams()
-                    ) -> dict[str, np.ndarray]:
-    """`count` episodes of `condition` from their resets to the timeout, in one program:
-    human positions (E, S+1, H, 2) and which the robot detects (E, S+1, H) at the reset and
-    after each of S steps, and which slots took a new human at each step (E, S, H)."""
+def record_episodes(condition: Condition, count: int, seed: int, params: EnvParams = EnvParams(),
+                    steps: int | None = None) -> dict[str, np.ndarray]:
+    """`count` episodes of `condition` from their resets, `steps` steps each (default: to the
+    end of the 50 s), in one program: human positions (E, S+1, H, 2) and which the robot
+    detects (E, S+1, H) at the reset and after each of S steps, and which slots took a new
+    human at each step (E, S, H)."""
     env = CrowdNav(condition.num_humans, CONSTANT_VELOCITY, human_policy=condition.human_policy,
                    reactive=condition.reactive, shift=condition.shift)
     planner = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
-    steps = round(params.time_limit_s / params.step_s) - 1
+    steps = steps or round(params.time_limit_s / params.step_s) - 1
 
     def episode(key):
         reset_key, run_key = jax.random.split(key)

@@ -254,6 +254,15 @@ def record_name(planner: str, regions: str, humans: str, episodes: int, seed: in
                      f"episodes{episodes}", f"seed{seed}"])
 
 
+def evaluate_described(described: dict, gst, plans: int, count: int, seed: int, out: Path,
+                       gifs: int = 0, **options) -> dict:
+    """`evaluate` of the sampling MPC with `plans` plans in the environment `described`
+    (`described_run`; `gst`: the loaded model for planner mpc)."""
+    env, params = environment_for(described, gst)
+    planner = SamplingMPC(num_plans=plans, horizon=env.pred_len, step_s=params.step_s)
+    return evaluate(env, params, planner, count, seed, out, described, gifs, **options)
+
+
 def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int, seed: int,
              out: Path, described: dict, gifs: int = 0, *, overwrite: bool = False,
              chunk: int = CHUNK, progress: Progress | None = None) -> dict:
