@@ -71,12 +71,21 @@ def test_a_model_trains_through_a_neighbourhood():
 
 
 def test_evaluate_predicts_with_the_candidates_it_is_given(capsys, tmp_path):
-    """`evaluate --candidates K` scores the model with a neighbourhood and writes nothing
-    (its work directory's records stay the exact model's)."""
+    """`evaluate --candidates K` scores the model with a neighbourhood: on windows of 22 and
+    30 people a neighbourhood of 2 (each target and its nearest) predicts otherwise than the
+    exact model with the same draws, so its errors differ, and `--candidates 0` is the exact
+    model. It writes nothing (its work directory's records stay the exact model's)."""
     from gst_jax.evaluate import main
 
-    main(["pretrained:eth_d", "--candidates", "2", "--max-windows", "2", "--samples", "2",
-          "--no-kde", "--json", "--workdir", str(tmp_path)])
-    result = json.loads(capsys.readouterr().out)
-    assert 0 < result["aoe"] < 5
+    def evaluated(*flags: str) -> dict:
+        main(["pretrained:eth_d", *flags, "--max-windows", "2", "--samples", "2", "--no-kde",
+              "--json", "--workdir", str(tmp_path)])
+        return json.loads(capsys.readouterr().out)
+
+    nearest = evaluated("--candidates", "2")
+    assert 0 < nearest["aoe"] < 5
     assert not any(tmp_path.iterdir())
+    exact = evaluated("--candidates", "0")
+    assert nearest["pedestrians"] == exact["pedestrians"] > 0
+    assert abs(nearest["aoe"] - exact["aoe"]) > 1e-3
+    assert nearest["cv_aoe"] == exact["cv_aoe"]       # the same pedestrians, the same truth
