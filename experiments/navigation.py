@@ -31,8 +31,9 @@ from _common import add_results_flags, results_folder
 
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT
-from gst_jax.simulate.crowdnav.navigation import (described_run, evaluate_described,
-                                                  format_table, record_name, row_label)
+from gst_jax.simulate.crowdnav.navigation import (compare, described_run, evaluate_described,
+                                                  format_table, record_name, row_label,
+                                                  setting)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 
@@ -179,6 +180,33 @@ def answers(rows: list[dict], episodes: int) -> list[str]:
     return lines
 
 
+def paired_table(rows: list[dict]) -> list[str]:
+    """Issue 90's answer: in each NAMED scenario, every setting against constant velocity's
+    best (its setting of highest success), paired over the same episodes, and the share of the
+    truth's margin over that CV each setting captures."""
+    lines = ["| humans | setting | success | minus CV's best (95 % paired interval) | McNemar p "
+             "| share of the truth's margin |", "|---" * 6 + "|"]
+    for scenario in NAMED.values():
+        cell = [r for r in rows if scenario_of(r) == scenario and "per_episode" in r]
+        cvs = [r for r in cell if r["predictor"] == "cv"]
+        truths = [r for r in cell if r["predictor"] == "truth"]
+        if not cvs or not truths:
+            continue
+        best_cv = max(cvs, key=lambda r: r["success"])
+        margin = max(r["success"] for r in truths) - best_cv["success"]
+        for row in sorted(cell, key=lambda r: -r["success"]):
+            if row is best_cv:
+                lines.append(f"| {scenario_name(scenario)} | {setting(row)} (CV's best) | "
+                             f"{row['success']:.3f} | | | |")
+                continue
+            success = compare(row, best_cv)["success"]
+            share = success["difference"] / margin if margin > 0 else math.nan
+            lines.append(f"| {scenario_name(scenario)} | {setting(row)} | {row['success']:.3f} "
+                         f"| {success['difference']:+.3f} ({success['low']:+.3f} to "
+                         f"{success['high']:+.3f}) | {success['p']:.2g} | {share:+.2f} |")
+    return lines if len(lines) > 2 else []
+
+
 def readings(default: list[dict], episodes: int) -> list[str]:
     """`reading` and `among_social_force` of issue 60's rows, where all of them are made."""
     orca = [r for r in default if r["humans"] == "orca"]
@@ -259,6 +287,12 @@ def main() -> None:
         matrix_table(matrix, args.episodes), "",
         "Success differences (half-width of the difference, the rates taken as independent):",
         "", *answers(matrix, args.episodes), "",
+        *(["## Paired over the same episodes (issue 90)", "",
+           "Each setting against constant velocity's best in the same scenario, episode by "
+           "episode: the difference in success with its 95 % paired-bootstrap interval and "
+           "McNemar's exact p, and the share of the truth's margin over that CV (the best "
+           "truth setting's success minus CV's best) it captures.", "",
+           *paired_table(rows), ""] if paired_table(rows) else []),
         *([f"Not yet run ({len(missing)}): " + "; ".join(missing) + ".", ""] if missing
           else [])])
     (out / "navigation.md").write_text(text)

@@ -63,7 +63,7 @@ def navigate(args) -> None:
                                 else None, args.plans, args.episodes, args.seed,
                                 Path(args.workdir), args.gif, overwrite=args.overwrite,
                                 chunk=args.chunk, progress=Progress())
-    print(json.dumps(result, indent=2) if args.json else summary(result))
+    print(json.dumps(result, indent=2) if args.json else summary(result, Path(args.workdir)))
 
 
 if __name__ == "__main__":

@@ -21,9 +21,10 @@ from gst_jax.simulate.crowdnav.crowds import Condition, crowd_rows, person_ids, 
 from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL,
                                                    SOCIAL_FORCE, SPEED_SHIFT, CrowdNav,
                                                    EnvParams, Observation, detected_humans)
-from gst_jax.simulate.crowdnav.navigation import (episode_measures, max_steps, navigation_measures,
+from gst_jax.simulate.crowdnav.navigation import (described_run, episode_measures, max_steps,
+                                                  navigation_measures, paired_lines,
                                                   per_episode, record_name, row_label,
-                                                  run_episodes, summary)
+                                                  run_episodes, same_episodes, summary)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.stream import Regions
 
@@ -231,7 +232,7 @@ def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_m
     seen = {}
     monkeypatch.setattr(navigation, "evaluate", lambda env, params, planner, count, seed, out,
                         described, *rest, **options: seen.update(env=env, **described) or {})
-    monkeypatch.setattr(navigate, "summary", lambda result: "")
+    monkeypatch.setattr(navigate, "summary", lambda result, out=None: "")
     navigate.main(["evaluate", "--planner", "truth-mpc", "--reactive", "--num-humans", "35",
                    "--shift", "speed", "--workdir", str(tmp_path)])
     env = seen.pop("env")
@@ -284,3 +285,24 @@ def test_the_crowds_written_are_the_positions_the_environment_played(tmp_path):
     for key, xy in expected.items():
         np.testing.assert_allclose(rows[key], xy, atol=1e-4)
     assert (np.diff(ids, axis=0) != 0).sum() == record["replaced"][0].sum()
+
+
+def test_evaluate_prints_its_paired_differences_from_the_records_of_the_same_episodes(tmp_path):
+    """Issue 90: the other settings' records of the same episodes in the folder are compared
+    episode by episode; records of other episodes (another scenario) are not."""
+    def record(planner, regions, outcomes, shift="none"):
+        fields = described_run(planner, regions, shift=shift)
+        return {**fields, "seed": 1000, "episodes": len(outcomes), "success": 0.0,
+                "per_episode": {"outcome": outcomes, "time_s": [10.0] * len(outcomes),
+                                "closest_m": [0.2] * len(outcomes),
+                                "intrusion_ratio": [0.1] * len(outcomes)}}
+    s, c = "success", "collision"
+    cv = record("cv-mpc", "none", [s] * 8 + [c] * 2)
+    truth = record("truth-mpc", "none", [s] * 10)
+    shifted = record("cv-mpc", "dtaci", [c] * 10, shift="speed")
+    for name, other in [("truth", truth), ("shifted", shifted)]:
+        (tmp_path / f"{name}.json").write_text(json.dumps(other))
+    assert same_episodes(cv, tmp_path) == [truth]
+    lines = paired_lines(cv, same_episodes(cv, tmp_path))
+    assert lines[1].startswith("  success - truth + no discs: -0.200 (")
+    assert lines[1].endswith("p 0.5 (0 / 2)")

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gst_jax.errors import RunError
+from gst_jax.paired import paired_means, paired_rates
 from gst_jax.progress import Progress
 from gst_jax.simulate.crowdnav.environment import (COLLISION, CONSTANT_VELOCITY, NO_SHIFT,
                                                    POLICY_SHIFT, REACH_GOAL, STANDING, TIMEOUT,
@@ -233,12 +234,67 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def summary(result: dict) -> str:
+def summary(result: dict, out: Path | None = None) -> str:
     """An evaluation's record as `python -m gst_jax.navigate evaluate` prints it: its row of
-    results/navigation.md's table, then its episodes, seed and seconds."""
+    results/navigation.md's table, its episodes, seed and seconds, and, with `out`, its paired
+    differences from the other records there of the same episodes (`paired_lines`)."""
     return "\n".join([format_table([{**result, "label": row_label(result)}]),
                       f"{result['episodes']} episodes of seed {result['seed']}; compiling "
-                      f"{result['compile_s']} s, running {result['run_s']} s"])
+                      f"{result['compile_s']} s, running {result['run_s']} s",
+                      *(paired_lines(result, same_episodes(result, out)) if out else [])])
+
+
+# What makes two records' episodes the same ones.
+EPISODES_OF = ("humans", "reactive", "num_humans", "shift", "seed", "episodes")
+
+
+def same_episodes(record: dict, out: Path) -> list[dict]:
+    """The other records in `out` that played `record`'s episodes (EPISODES_OF) and kept
+    them one by one (per_episode)."""
+    found = []
+    for path in sorted(out.glob("*.json")):
+        try:
+            other = json.loads(path.read_text())
+        except (OSError, ValueError):
+            continue
+        same = isinstance(other, dict) and "per_episode" in other and all(
+            other.get(k) == record.get(k) for k in EPISODES_OF)
+        if same and (other["planner"], other["regions"], other.get("alpha")) != (
+                record["planner"], record["regions"], record.get("alpha")):
+            found.append(other)
+    return found
+
+
+def compare(a: dict, b: dict) -> dict:
+    """Record a minus record b over their episodes, paired: success and collision rates
+    (difference, 95 % interval, McNemar's p) and the mean intrusion ratio."""
+    outcomes = lambda record, kind: np.array(record["per_episode"]["outcome"]) == kind
+    return {"success": paired_rates(outcomes(a, "success"), outcomes(b, "success")),
+            "collision": paired_rates(outcomes(a, "collision"), outcomes(b, "collision")),
+            "intrusion_ratio": paired_means(a["per_episode"]["intrusion_ratio"],
+                                            b["per_episode"]["intrusion_ratio"])}
+
+
+def setting(record: dict) -> str:
+    """A record's predictor and discs, as paired comparisons name them: e.g. "cv + DtACI"."""
+    discs = {"none": "no discs", "dtaci": "DtACI", "aci": "ACI"}[record["regions"]]
+    return f"{record['predictor']} + {discs}"
+
+
+def paired_lines(record: dict, others: list[dict]) -> list[str]:
+    """`record` against each of `others` (same episodes): success difference with its 95 %
+    paired-bootstrap interval, McNemar's exact p and the discordant episodes."""
+    if not others:
+        return []
+    lines = [f"paired with the other settings of these {record['episodes']} episodes (95 % "
+             "paired-bootstrap interval; McNemar's exact p; episodes only this one / only the "
+             "other succeeded in):"]
+    for other in others:
+        success = compare(record, other)["success"]
+        lines.append(f"  success - {setting(other)}: {success['difference']:+.3f} "
+                     f"({success['low']:+.3f} to {success['high']:+.3f}), p {success['p']:.3g} "
+                     f"({success['only_a']} / {success['only_b']})")
+    return lines
 
 
 def record_name(planner: str, regions: str, humans: str, episodes: int, seed: int,
