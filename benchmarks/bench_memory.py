@@ -39,14 +39,13 @@ def one_case(num_pedestrians: int, num_samples: int, budget: int | None) -> dict
     import jax
     import numpy as np
 
-    from gst_jax import load_pretrained, make_batch
-    from gst_jax import predict as predict_module
+    from gst_jax import load_pretrained, make_batch, resources
     from gst_jax.config import ModelConfig
     from gst_jax.errors import DataError
     from gst_jax.predict import DEFAULT_MEMORY_BUDGET, make_predict
 
     if budget == MODES["whole"]:
-        predict_module.available_memory = lambda device: None
+        resources.available_memory = lambda device: None
 
     config, params = load_pretrained("eth_d")
     assert config == ModelConfig(), "eth_d is the paper's model"

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 import gst_jax
-from gst_jax import compiles
+from gst_jax import compiles, resources
 from gst_jax import predict as predict_module
 from gst_jax.compiles import count_compiles
 from gst_jax.errors import DataError
 from gst_jax.model import Controls
-from gst_jax.predict import Chunking
+from gst_jax.predict import Chunking, checks
 from gst_jax.rollout import rollout
 
 CONFIG = gst_jax.ModelConfig()
@@ -162,8 +162,8 @@ def test_samples_in_chunks_are_the_samples_of_one_vmap():
 
 
 def test_a_prediction_that_cannot_fit_is_refused_in_one_line_before_it_runs(monkeypatch):
-    monkeypatch.setattr(predict_module, "COMPILER_BYTES", 0)     # the compiler fits (below)
-    monkeypatch.setattr(predict_module, "available_memory",
+    monkeypatch.setattr(checks, "COMPILER_BYTES", 0)     # the compiler fits (below)
+    monkeypatch.setattr(resources, "available_memory",
                         lambda device: (2 ** 16, "under this process's cgroup memory limit"))
     params = gst_jax.init_params(CONFIG, jax.random.key(0))
     predict = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False)
@@ -209,24 +209,44 @@ def test_the_memory_left_under_cgroup_limits_is_read_for_v1_and_v2(tmp_path):
           memory_stat=f"anon 1\ninactive_file {2 ** 28}\n")
     write(tmp_path / "a", memory_max=str(8 * 2 ** 30), memory_current=str(2 ** 30),
           memory_stat="")
-    assert predict_module.cgroup_headroom("0::/a/b\n", tmp_path) == 2 * 2 ** 30 + 2 ** 28
+    assert resources.cgroup_headroom("0::/a/b\n", tmp_path) == 2 * 2 ** 30 + 2 ** 28
     # No limit anywhere ("max"): None, and MemAvailable decides.
     write(tmp_path / "c", memory_max="max", memory_current="5")
-    assert predict_module.cgroup_headroom("0::/c\n", tmp_path) is None
+    assert resources.cgroup_headroom("0::/c\n", tmp_path) is None
     # v1: the memory controller's own hierarchy; "no limit" is a huge number.
     write(tmp_path / "memory" / "job", memory_limit_in_bytes=str(2 ** 31),
           memory_usage_in_bytes=str(2 ** 30), memory_stat="total_inactive_file 0\n")
     write(tmp_path / "memory", memory_limit_in_bytes=str(2 ** 63 - 4096),
           memory_usage_in_bytes="7")
-    assert predict_module.cgroup_headroom("4:memory:/job\n3:cpu:/job\n", tmp_path) == 2 ** 30
+    assert resources.cgroup_headroom("4:memory:/job\n3:cpu:/job\n", tmp_path) == 2 ** 30
 
 
 def test_the_memory_available_on_this_machine_is_known():
-    available = predict_module.available_memory(jax.devices()[0])
+    available = resources.available_memory(jax.devices()[0])
     if available is None:
         pytest.skip("no memory figures on this platform")
     left, source = available
     assert 0 < left and source
+
+
+def test_predict_s_names_stay_importable_from_gst_jax_predict_where_they_moved():
+    """The chunking, the cost of a program, the checks before it runs and the OS's figures
+    have modules of their own; every public name `gst_jax.predict` had is still its own,
+    the very object of the module that defines it now."""
+    from gst_jax.predict import chunking, cost
+
+    homes = {chunking: ["Chunking", "DEFAULT_MEMORY_BUDGET", "CHUNKING_SLACK"],
+             cost: ["Estimate", "estimate", "operation_count", "CPU_RUNTIME_MARGIN"],
+             checks: ["check_compiler_room", "crowd_notice", "compile_checked",
+                      "COMPILER_BYTES", "SUGGESTED_CANDIDATES", "CANDIDATES_PAY_ABOVE",
+                      "LONG_CALL_S", "CPU_OPERATIONS_PER_CORE_SECOND"],
+             resources: ["available_memory", "cgroup_headroom", "CGROUP_ROOT", "NO_LIMIT"],
+             predict_module: ["Prediction", "Predictor", "make_predict"]}
+    names = [name for moved in homes.values() for name in moved]
+    assert sorted(predict_module.__all__) == sorted(names)
+    for module, moved in homes.items():
+        for name in moved:
+            assert getattr(predict_module, name) is getattr(module, name), name
 
 
 # --- large crowds: announced, and the compiler's own memory -----------------------------------
@@ -235,8 +255,8 @@ def test_a_crowd_above_the_crossover_with_the_exact_model_is_announced_in_one_li
     """Before a large crowd's first call: one warning with XLA's estimate of its memory and
     time that names the candidate neighbourhood; once per shape. The crossover is lowered to
     4 people and the time worth a word to none, so that a scene of 5 (8 slots) is "large"."""
-    monkeypatch.setattr(predict_module, "CANDIDATES_PAY_ABOVE", 4)
-    monkeypatch.setattr(predict_module, "LONG_CALL_S", 0.0)
+    monkeypatch.setattr(checks, "CANDIDATES_PAY_ABOVE", 4)
+    monkeypatch.setattr(checks, "LONG_CALL_S", 0.0)
     params = gst_jax.init_params(CONFIG, jax.random.key(0))
     predict = gst_jax.make_predict(CONFIG, num_samples=K, with_graph=False)
     batch = gst_jax.make_batch(observations(5))
@@ -303,7 +323,7 @@ def test_a_program_compiled_for_a_stream_is_checked_announced_and_not_compiled_a
         double(x).block_until_ready()
     assert compiled.count == 1                          # the call ran what was checked
     assert cost.operations == 12 and cost.bytes_needed > 0
-    monkeypatch.setattr(predict_module, "available_memory",
+    monkeypatch.setattr(resources, "available_memory",
                         lambda device: (2 ** 20, "under this process's cgroup memory limit "
                                                  "of 1.0 GiB"))
     with count_compiles() as compiled:

@@ -23,7 +23,7 @@ from gst_jax.compiles import count_compiles
 from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
 from gst_jax.errors import DataError
-from gst_jax import predict as predict_module
+from gst_jax import resources
 from gst_jax.predict import make_predict
 from gst_jax.runs import load_model
 
@@ -514,7 +514,7 @@ def test_each_capacitys_step_is_checked_before_it_first_runs(sim_run, monkeypatc
         player.step(np.arange(people), xy[t, :people])
     assert seen == ["a stream step over 8 slots", "a stream step over 16 slots"]
     # Where the memory left cannot hold the compiler, the next new capacity is refused.
-    monkeypatch.setattr(predict_module, "available_memory",
+    monkeypatch.setattr(resources, "available_memory",
                         lambda device: (2 ** 20, "under a test's limit"))
     with pytest.raises(DataError, match=r"^a stream step over 24 slots: XLA's compiler needs"):
         player.step(np.arange(20), walkers(20, 1)[0])
