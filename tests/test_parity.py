@@ -16,6 +16,10 @@ FIXTURE = Path(__file__).parent / "fixtures" / "gst_reference_parity.npz"
 CONFIGS = {"n1_ghost": (1, True), "n4_ghost": (4, True), "n0_noghost": (0, False)}
 SCENES = ("zara1_test_0", "zara1_test_57", "eth_test_20")
 RUNS = ("eval_hard", "train_soft", "gaussian_eval_hard", "gaussian_train_soft")
+# The runs the fixture recorded (docs/MODEL.md 5): GST (P)'s two runs are not there for the
+# largest scene, eth_test_20.
+RECORDED = [(scene, run) for scene in SCENES for run in RUNS
+            if not (scene == "eth_test_20" and run.startswith("gaussian"))]
 OUTPUTS = ("mu", "sx", "sy", "corr", "x_pred", "edge_multinomial", "sampled_edges",
            "attn_weights")
 
@@ -32,8 +36,7 @@ def group(fixture, prefix):
 
 def replay_args(fixture, tag, scene, run):
     recorded = group(fixture, f"{tag}/{scene}/{run}/")
-    if not recorded:
-        pytest.skip(f"the fixture has no {run} run for {scene}")
+    assert recorded, f"the fixture has no {run} run of {tag} for {scene}"
     num_edge_heads, ghost = CONFIGS[tag]
     gumbel = [recorded[f"gumbel/{k:02d}"] for k in range(12)] if "gumbel/00" in recorded else []
     normals = [recorded[f"normal/{k:02d}"] for k in range(12)] if "normal/00" in recorded else None
@@ -44,8 +47,14 @@ def replay_args(fixture, tag, scene, run):
     return recorded, args, kwargs
 
 
-@pytest.mark.parametrize("run", RUNS)
-@pytest.mark.parametrize("scene", SCENES)
+def test_the_tests_replay_every_run_the_fixture_recorded(fixture):
+    """The parametrisations below are the fixture's runs, every one of them and no other."""
+    stored = {tuple(name.split("/")[:3]) for name in fixture
+              if name.split("/")[1] != "weights" and name.split("/")[2] != "input"}
+    assert stored == {(tag, scene, run) for tag in CONFIGS for scene, run in RECORDED}
+
+
+@pytest.mark.parametrize("scene,run", RECORDED)
 @pytest.mark.parametrize("tag", CONFIGS)
 def test_forward_matches_release(fixture, tag, scene, run):
     recorded, args, kwargs = replay_args(fixture, tag, scene, run)
@@ -58,8 +67,8 @@ def test_forward_matches_release(fixture, tag, scene, run):
         np.testing.assert_allclose(ours["loss"], recorded["loss"], rtol=1e-5)
 
 
-@pytest.mark.parametrize("run", ("train_soft", "gaussian_train_soft"))
-@pytest.mark.parametrize("scene", SCENES)
+@pytest.mark.parametrize("scene,run", [(scene, run) for scene, run in RECORDED
+                                       if run.endswith("train_soft")])
 @pytest.mark.parametrize("tag", CONFIGS)
 def test_loss_and_gradients_match_release(fixture, tag, scene, run):
     recorded, args, kwargs = replay_args(fixture, tag, scene, run)
