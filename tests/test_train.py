@@ -25,7 +25,6 @@ from gst_jax import data
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.errors import NonFiniteError, RunError
 from gst_jax.io.checkpoints import Checkpointer
-from gst_jax.io.interrupts import writes_completed
 from gst_jax.io.workdir import WorkDir, code_version, run_config, run_name, same_run
 from gst_jax.model import heads
 from gst_jax.predict import make_predict
@@ -430,13 +429,36 @@ def test_a_ctrl_c_during_a_checkpoint_save_takes_effect_once_it_is_complete(tmp_
                                                                    [{"epoch": 1}])
 
 
-def test_an_ignored_ctrl_c_stays_ignored_during_a_checkpoint_save():
+def test_an_ignored_ctrl_c_stays_ignored_during_a_checkpoint_save(tmp_path, monkeypatch):
+    """Where the process ignores SIGINT (a script's background job), a save leaves it ignored
+    while it writes (a Ctrl-C then is not held back to stop it after the write, while SIGTERM
+    is) and after it, and completes: its checkpoint restores."""
+    state = create_train_state(MODEL, jax.random.key(0))
+    finish = ocp.CheckpointManager.wait_until_finished
+    while_writing = {}
+
+    def pressed_while_writing(manager):
+        while_writing.update({s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)})
+        os.kill(os.getpid(), signal.SIGINT)
+        finish(manager)
+
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)      # as in a script's background job
+    previous_term = signal.signal(signal.SIGTERM, signal.SIG_DFL)
     try:
-        with writes_completed():
-            os.kill(os.getpid(), signal.SIGINT)
+        monkeypatch.setattr(ocp.CheckpointManager, "wait_until_finished", pressed_while_writing)
+        checkpointer = Checkpointer(tmp_path / "checkpoints")
+        checkpointer.save(1, state, {"run": "a"}, [{"epoch": 1}])
+        monkeypatch.undo()
+        assert while_writing[signal.SIGINT] is signal.SIG_IGN
+        assert callable(while_writing[signal.SIGTERM])                   # held back
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGTERM, previous_term)
+    restored = checkpointer.restore(state)
+    checkpointer.close()
+    assert (restored.epoch, restored.config, restored.records) == (1, {"run": "a"},
+                                                                   [{"epoch": 1}])
 
 
 class _CtrlCInGarbageCollection(Progress):
