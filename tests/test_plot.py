@@ -1,15 +1,18 @@
-"""Figures render from a (random, untrained) run directory; nothing is drawn inside jit."""
+"""Figures render from a (random, untrained) run directory, drawing the run's window, its
+predictions and its records; nothing is drawn inside jit."""
 
 from __future__ import annotations
 
 import json
 
 import jax
+import numpy as np
 import pytest
 
-from gst_jax import plot
+from gst_jax import data, plot
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.io.workdir import WorkDir, run_config
+from gst_jax.testing.drawn import colour_pixels, line_data, saved_figures
 from gst_jax.training.state import create_train_state
 
 
@@ -27,17 +30,90 @@ def random_run(tmp_path_factory):
     return workdir
 
 
-@pytest.mark.parametrize("command", [
-    ["scene", "--window", "3", "--samples", "2", "--pdf"],
-    ["attention", "--window", "3", "--agent", "1"],
-    ["training"],
-])
-def test_figures_are_written(random_run, tmp_path, command):
-    out = tmp_path / f"{command[0]}.png"
-    plot.main([command[0], str(random_run), "--out", str(out), *command[1:]])
-    assert out.stat().st_size > 10_000
-    if "--pdf" in command:
-        assert out.with_suffix(".pdf").stat().st_size > 10_000
+WINDOW = 3          # of zara1's test split: 7 people, 4 of them fully detected, one seen
+                    # only at the first 4 steps
+
+
+def _observed_window() -> tuple[np.ndarray, np.ndarray]:
+    """The positions (20, N, 2) of the window drawn, and where they exist (20, N)."""
+    window = data.load_split(DataConfig(scene="zara1"), "test")[WINDOW]
+    return window.positions, window.position_mask > 0
+
+
+def test_the_scene_figure_draws_the_windows_paths_its_samples_and_graphs(random_run, tmp_path):
+    """`plot scene`: the observed (blue) and true (green) paths are the window's own
+    positions; each person the model predicts (seen at the last observed step) has its K = 2
+    sampled paths and their mean over the 12 predicted steps, red where fully detected and
+    orange where not; the graph panels place the people present where the window has them,
+    beside an (N, N + 1) adjacency matrix; the PDF draws the same paths."""
+    out = tmp_path / "scene.png"
+    with saved_figures() as saved:
+        plot.main(["scene", str(random_run), "--out", str(out), "--window", str(WINDOW),
+                   "--samples", "2", "--pdf"])
+    positions, seen = _observed_window()
+    num = seen.shape[1]
+    paths, graph, matrix = saved[out].axes[:3]
+    observed = [positions[:8][seen[:8, i], i] for i in range(num) if seen[:8, i].any()]
+    truth = [positions[8:][seen[8:, i], i] for i in range(num) if seen[8:, i].any()]
+    for drawn, expected in ((line_data(paths, "tab:blue"), observed),
+                            (line_data(paths, "tab:green"), truth)):
+        assert len(drawn) == len(expected)
+        for xy, path in zip(drawn, expected):
+            np.testing.assert_array_equal(xy, path)
+    fully = np.all(seen, axis=0)
+    predicted = seen[7]
+    for colour, people in (("tab:red", fully & predicted), ("tab:orange", ~fully & predicted)):
+        lines = line_data(paths, colour)
+        assert len(lines) == 3 * people.sum() > 0            # 2 samples and their mean each
+        assert all(xy.shape == (12, 2) and np.isfinite(xy).all() for xy in lines)
+    np.testing.assert_array_equal(graph.collections[0].get_offsets(), positions[7][seen[7]])
+    assert matrix.images[0].get_array().shape == (num, num + 1)
+    assert out.with_suffix(".pdf").read_bytes().startswith(b"%PDF")
+    for drawn, again in zip(line_data(paths), line_data(saved[out.with_suffix(".pdf")].axes[0])):
+        np.testing.assert_array_equal(drawn, again)
+    assert colour_pixels(out) > 5_000        # its legend alone has 384 pixels in colour
+
+
+def test_the_attention_figure_draws_every_neighbour_where_the_model_sees_it(random_run,
+                                                                          tmp_path):
+    """`plot attention --agent 1`: a line per other person and one for the ghost over the 19
+    selector calls (8 observed, 11 predicted), probabilities; a neighbour has attention at a
+    call exactly where the model sees it (detected at that observed step, or predicted: seen
+    at the last observed one), so the person seen only at the first 4 steps has none after."""
+    out = tmp_path / "attention.png"
+    with saved_figures() as saved:
+        plot.main(["attention", str(random_run), "--out", str(out), "--window", str(WINDOW),
+                   "--agent", "1"])
+    _, seen = _observed_window()
+    visible = np.concatenate([seen[:8], np.repeat(seen[7:8], 11, axis=0)])      # (19, N)
+    ax = saved[out].axes[0]
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert {label for label in lines if not label.startswith("_")} == {
+        "ghost", *(f"pedestrian {j}" for j in range(seen.shape[1]) if j != 1)}
+    for label, line in lines.items():
+        if label.startswith("pedestrian"):
+            calls, attention = line.get_xdata(), line.get_ydata()
+            np.testing.assert_array_equal(calls, np.arange(1, 20))
+            assert np.all((attention >= 0) & (attention <= 1))
+            np.testing.assert_array_equal(attention > 0, visible[:, int(label.split()[1])])
+    assert not visible[4:, 6].any() and visible[:4, 6].all()
+    assert colour_pixels(out) > 600          # its legend alone has 442 pixels in colour
+
+
+def test_the_training_figure_draws_the_recorded_loss_and_validation_errors(random_run,
+                                                                         tmp_path):
+    """`plot training`: the loss and the validation AOE and FOE of metrics.jsonl per epoch."""
+    out = tmp_path / "training.png"
+    with saved_figures() as saved:
+        plot.main(["training", str(random_run), "--out", str(out)])
+    loss, validation = saved[out].axes
+    epochs = [1, 2, 3]
+    [drawn] = line_data(loss)
+    np.testing.assert_allclose(drawn, np.column_stack([epochs, [2.0, 1.0, 2 / 3]]))
+    aoe, foe = line_data(validation)
+    np.testing.assert_allclose(aoe, np.column_stack([epochs, [1.0, 0.5, 1 / 3]]))
+    np.testing.assert_allclose(foe, np.column_stack([epochs, [2.0, 1.0, 2 / 3]]))
+    assert colour_pixels(out) > 2_000        # its legend alone has 478 pixels in colour
 
 
 def test_bad_window_is_a_clear_error(random_run):
