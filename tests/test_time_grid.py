@@ -13,7 +13,9 @@ from gst_jax import evaluate, plot, train
 from gst_jax.predict.__main__ import main as predict_main
 from gst_jax.config import DataConfig, TimeGrid
 from gst_jax.data import load_split
+from gst_jax.runs import load_model
 from gst_jax.simulate.crowds import CrowdConfig, crowd_rows, simulate_crowd
+from gst_jax.testing.drawn import line_data, saved_figures
 
 CROWDNAV = ["--fps", "4", "--step", "0.25", "--obs-len", "5", "--pred-len", "5",
             "--edge-heads", "0", "--no-ghost", "--node-dim", "16", "--encoder-layers", "1",
@@ -64,8 +66,20 @@ def test_a_0_25s_model_trains_evaluates_predicts_and_plots_through_the_commands(
     scene = next(row["scene"] for row in rows if "scene" in row)
     assert scene["e"] - scene["s"] == 9
 
-    plot.main(["scene", str(run), "--samples", "2", "--out", str(tmp_path / "scene.png")])
-    assert (tmp_path / "scene.png").stat().st_size > 10_000
+    # The scene figure draws the window on the model's grid: 5 observed steps, 5 predicted.
+    with saved_figures() as saved:
+        plot.main(["scene", str(run), "--samples", "2", "--out", str(tmp_path / "scene.png")])
+    trained = load_model(str(run))
+    window = load_split(trained.data_config, "test", trained.model_config.grid)[0]
+    seen = window.position_mask[:5] > 0
+    paths = saved[tmp_path / "scene.png"].axes[0]
+    observed = line_data(paths, "tab:blue")
+    assert len(observed) == seen.any(axis=0).sum()
+    for xy, person in zip(observed, np.flatnonzero(seen.any(axis=0))):
+        np.testing.assert_array_equal(xy, window.positions[:5][seen[:, person], person])
+    samples = line_data(paths, "tab:red") + line_data(paths, "tab:orange")
+    assert len(samples) == 3 * seen[-1].sum()         # 2 samples and their mean per person
+    assert all(xy.shape == (5, 2) and np.isfinite(xy).all() for xy in samples)
 
 
 def test_its_windows_follow_the_model_s_grid_and_bundled_scenes_refuse_it(crowds, capsys):
