@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
 from gst_jax.paired import paired_means, paired_rates
 from gst_jax.progress import Progress
@@ -31,7 +32,6 @@ from gst_jax.simulate.crowdnav.environment import (COLLISION, CONSTANT_VELOCITY,
                                                    TRUTH, CrowdNav, EnvParams, Observation)
 from gst_jax.simulate.crowdnav.figures import animate_navigation
 from gst_jax.simulate.crowdnav.planner import PlannerState, SamplingMPC
-from gst_jax.stream import Regions
 
 # A planner: (key, its state, observation) -> (velocity (2,), its next state).
 Planner = Callable[[jax.Array, PlannerState, Observation], tuple[jax.Array, PlannerState]]
@@ -211,7 +211,7 @@ def row_label(record: dict) -> str:
     model = record.get("model") or ""
     predictions = {"cv-mpc": "constant velocity", "standing-mpc": "none (standing)",
                    "truth-mpc": "truth (the simulator's)"}.get(
-        record["planner"], f"GST ({model.removeprefix('pretrained:').rstrip('/').split('/')[-1]})")
+        record["planner"], f"GST ({model_name(model)})")
     discs = ("none" if record["regions"] == "none" else
              f"{'DtACI' if record['regions'] == 'dtaci' else 'ACI'} {record['alpha']:g}")
     humans = "social force" if record.get("humans") == "social-force" else "ORCA"
@@ -278,7 +278,9 @@ def compare(a: dict, b: dict) -> dict:
 def setting(record: dict) -> str:
     """A record's predictor and discs, as paired comparisons name them: e.g. "cv + DtACI"."""
     discs = {"none": "no discs", "dtaci": "DtACI", "aci": "ACI"}[record["regions"]]
-    return f"{record['predictor']} + {discs}"
+    model = record.get("model")
+    named = f" ({model_name(model)})" if model not in (None, DEFAULT_MODEL) else ""
+    return f"{record['predictor']}{named} + {discs}"
 
 
 def paired_lines(record: dict, others: list[dict]) -> list[str]:
@@ -298,16 +300,28 @@ def paired_lines(record: dict, others: list[dict]) -> list[str]:
 
 
 def record_name(planner: str, regions: str, humans: str, episodes: int, seed: int,
-                reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT) -> str:
+                reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT,
+                model: str | None = None) -> str:
     """The stem of an evaluation's files:
-    PLANNER-REGIONS[-HUMANS][-reactive][-humansN][-shiftS]-episodesCOUNT-seedSEED (the
-    defaults unnamed: 20 ORCA humans who ignore the robot, no shift), so that runs of other
-    settings and lengths sit beside it."""
+    PLANNER-REGIONS[-HUMANS][-reactive][-humansN][-shiftS][-modelNAME]-episodesCOUNT-seedSEED
+    (the defaults unnamed: 20 ORCA humans who ignore the robot, no shift, GST's model
+    DEFAULT_MODEL), so that runs of other settings and lengths sit beside it."""
     return "-".join([planner, regions, *([humans] if humans != "orca" else []),
                      *(["reactive"] if reactive else []),
                      *([f"humans{num_humans}"] if num_humans != 20 else []),
                      *([f"shift{shift}"] if shift != NO_SHIFT else []),
+                     *([f"model{model_name(model)}"] if model not in (None, DEFAULT_MODEL)
+                       else []),
                      f"episodes{episodes}", f"seed{seed}"])
+
+
+# GST's model where a record names none: the one the study was first run with.
+DEFAULT_MODEL = "pretrained:crowdnav_sj_rand"
+
+
+def model_name(model: str) -> str:
+    """A model as records and tables name it: pretrained:NAME's NAME, a run's folder name."""
+    return model.removeprefix("pretrained:").rstrip("/").split("/")[-1]
 
 
 def evaluate_described(described: dict, gst, plans: int, count: int, seed: int, out: Path,
@@ -330,7 +344,7 @@ def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int,
     name = record_name(described["planner"], described["regions"],
                        described.get("humans", "orca"), count, seed,
                        described.get("reactive", False), described.get("num_humans", 20),
-                       described.get("shift", NO_SHIFT))
+                       described.get("shift", NO_SHIFT), described.get("model"))
     if (out / f"{name}.json").exists() and not overwrite:
         raise RunError(f"{out / name}.json exists: a run of the same {count} episodes; "
                        f"--overwrite replaces it, another --workdir keeps it")
