@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import re
+import warnings
 from pathlib import Path
 
 import pytest
@@ -33,13 +35,26 @@ def test_pretrained_model_reproduces_its_recorded_aoe(name):
 
 
 @pytest.mark.parametrize("name", pretrained.available())
-def test_a_shipped_model_is_a_weights_folder_that_agrees_with_its_record(name):
+def test_a_shipped_model_is_a_weights_folder_that_agrees_with_its_record(name, tmp_path):
+    """Its config.json holds its record's fields and is covered by its own checksum: as
+    shipped it passes the check (a copy of it alone gets as far as the missing weights, with
+    no warning of a missing checksum), and with one field edited it is refused."""
     folder, meta = pretrained.folder(name), pretrained.load_meta(name)
     config = weights.read_config(folder)
     for key in ("model", "data", "train", "epoch", "source", "licence", "commands"):
         assert config[key] == meta[key], key
-    # config.json is covered by its own checksum: an edit of it is refused at load.
-    assert config["config_sha256"] == weights.config_digest(config)
+    assert re.fullmatch("[0-9a-f]{64}", config["config_sha256"])
+    shipped, edited = tmp_path / "shipped", tmp_path / "edited"
+    edit = {**config, "source": config["source"] + "."}
+    for copy, fields in ((shipped, config), (edited, edit)):
+        copy.mkdir()
+        (copy / "config.json").write_text(json.dumps(fields, indent=2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RunError, match="model.safetensors: no such file"):
+            weights.load(shipped)
+    with pytest.raises(RunError, match="its fields' SHA-256 .* the file was edited"):
+        weights.load(edited)
     assert meta["commands"] and meta["source"]
     if name.startswith("crowdnav_sj"):             # made by others: their licence beside it
         assert meta["licence"].startswith("MIT") and sorted(folder.glob("LICENSE.*"))

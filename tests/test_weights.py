@@ -260,6 +260,29 @@ def test_save_writes_nothing_that_load_would_refuse(trained, tmp_path):
     assert not (tmp_path / "grid").exists() and not (tmp_path / "record").exists()
 
 
+def test_the_config_checksum_is_the_sha256_of_its_other_fields_as_canonical_json():
+    """`config_sha256` as docs describe it, against a value known independently of the code:
+    the canonical JSON of these fields is written out below (sorted keys, nested ones too, no
+    spaces, non-ASCII escaped, `config_sha256` itself left out), and its SHA-256 was computed
+    once by `printf '%s' '<it>' | sha256sum`. The test's own `_config_sha256`, which forges
+    the checksums of hostile folders, is held to it too."""
+    canonical = ('{"epoch":3,"format":"gst_jax-weights","licence":"MIT \\u00a9 2022",'
+                 '"model":{"pred_len":12,"step_s":0.4},"sha256":"00ff"}')
+    known = "9391d2bcebe262b769e9a8d029a48eb10b16f016eef6f949ff7d568070f49ac2"
+    assert hashlib.sha256(canonical.encode("ascii")).hexdigest() == known
+    config = {"sha256": "00ff", "model": {"step_s": 0.4, "pred_len": 12},
+              "licence": "MIT \u00a9 2022", "format": "gst_jax-weights", "epoch": 3,
+              "config_sha256": "whatever was recorded"}
+    assert json.loads(canonical) == {k: v for k, v in config.items() if k != "config_sha256"}
+    assert weights.config_digest(config) == _config_sha256(config) == known
+    # A different recorded checksum or key order is the same content; one field is not.
+    assert weights.config_digest(dict(reversed({**config, "config_sha256": "x"}.items()))) == known
+    assert weights.config_digest({**config, "model": {"step_s": 0.4, "pred_len": 8}}) != known
+    assert weights.config_digest({**config, "epoch": 3.0}) != known        # 3.0 is not 3
+    with pytest.raises(ValueError):
+        weights.config_digest({**config, "epoch": float("nan")})
+
+
 def test_an_edit_of_config_json_is_detected_by_its_checksum(trained, tmp_path):
     _, exported = trained
     config = json.loads((exported / "config.json").read_text())
