@@ -32,9 +32,45 @@ from gst_jax.simulate.crowdnav.environment import UNDETECTED, Observation
 
 
 class PlannerState(NamedTuple):
-    """The best plan of the last step, (P, 2) velocities, to start from."""
+    """The best plan of the last step, (P, 2) velocities, to start from, and the safety
+    margin (m) a decision-calibrated planner holds now (`DecisionCalibration`; 0 otherwise)."""
 
     plan: jax.Array
+    margin: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class DecisionCalibration:
+    """A safety margin calibrated online to hold a target rate of near misses (conformal
+    decision theory: Lekeufack, Angelopoulos, Bajcsy, Jordan & Malik 2023), instead of a disc
+    around every predicted position.
+
+    A near miss at a step: a detected human's centre within `near` metres of the robot's
+    (CrowdNav++'s robot and largest human radius, 0.3 + 0.5, and its discomfort distance,
+    0.25). After each step the margin m, added to every human's clearance in the plans' cost,
+    moves by `step` (loss - `target_rate`): up after a near miss, down slowly otherwise, within
+    [0, `max_margin`]. Whatever the humans do, the near misses of T steps then average within
+    (max_margin + step) / (step T) of the target rate, provided a margin of max_margin keeps
+    the robot clear (the update is online gradient descent on the pinball of the rate; the
+    bound is its telescoping sum).
+    """
+
+    target_rate: float = 0.1
+    step: float = 0.05
+    max_margin: float = 1.0
+    near: float = 1.05
+
+    def update(self, margin: jax.Array, near_miss: jax.Array) -> jax.Array:
+        """The next margin after a step with (1) or without (0) a near miss."""
+        return jnp.clip(margin + self.step * (near_miss - self.target_rate), 0.0,
+                        self.max_margin)
+
+    def near_miss(self, obs: Observation) -> jax.Array:
+        """Whether a detected human's centre is within `near` of the robot now."""
+        relative = obs.spatial_edges.reshape(obs.spatial_edges.shape[0], -1, 2)[:, 0]
+        detected = relative[:, 0] != UNDETECTED
+        distance = jnp.linalg.norm(relative, axis=-1)
+        return jnp.any(detected & (distance < self.near)).astype(jnp.float32)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,7 +79,8 @@ class SamplingMPC:
     steps P); step_s: seconds per step; max_speed: the robot's (m/s); clearance: the robot's
     radius + the largest human's (CrowdNav++: 0.3 + 0.5; the observation has no radii);
     collision_weight: cost per metre inside a disc; heading_noise: radians per step of the
-    random walks."""
+    random walks; calibration: a safety margin calibrated online (`DecisionCalibration`),
+    added to every human's clearance, or None."""
 
     num_plans: int = 256
     horizon: int = 5
@@ -52,11 +89,12 @@ class SamplingMPC:
     clearance: float = 0.8
     collision_weight: float = 100.0
     heading_noise: float = 0.5
+    calibration: DecisionCalibration | None = None
     # 16 headings x 4 speeds, standing still, the last best plan shifted.
     fixed_plans: ClassVar[int] = 66
 
     def init(self) -> PlannerState:
-        return PlannerState(jnp.zeros((self.horizon, 2)))
+        return PlannerState(jnp.zeros((self.horizon, 2)), jnp.zeros(()))
 
     def plans(self, key: jax.Array, toward_goal: jax.Array, previous: jax.Array) -> jax.Array:
         """(num_plans, P, 2) candidate velocity sequences."""
@@ -97,8 +135,12 @@ class SamplingMPC:
         relative = obs.spatial_edges.reshape(obs.spatial_edges.shape[0], -1, 2)  # (H, 1+P, 2)
         humans = robot + relative[:, 1:]
         present = relative[:, 0, 0] != UNDETECTED          # rows of undetected humans: 15
+        margin, radii = state.margin, obs.radii
+        if self.calibration is not None:      # the last step's outcome is seen now
+            margin = self.calibration.update(margin, self.calibration.near_miss(obs))
+            radii = radii + margin
         plans = self.plans(key, goal - robot, state.plan)
         costs = jax.vmap(self.cost, in_axes=(0, None, None, None, None, None))(
-            plans, robot, goal, humans, obs.radii, present)
+            plans, robot, goal, humans, radii, present)
         best = plans[jnp.argmin(costs)]
-        return best[0], PlannerState(best)
+        return best[0], PlannerState(best, margin)
