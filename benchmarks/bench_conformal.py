@@ -129,13 +129,13 @@ def uniforms_of(present, seed: int) -> np.ndarray:
 def per_track_radii(method, q0, scores, present, uniforms, dtype):
     """Ours, one jitted call per time step -> radii (T, N, P) and seconds per step."""
     update = jax.jit(jax.vmap(jax.vmap(method.update)))
-    state = jax.vmap(jax.vmap(lambda q: method.init(q, dtype)))(jnp.asarray(q0, dtype))
+    state = jax.vmap(jax.vmap(lambda q: method.init(q, dtype=dtype)))(jnp.asarray(q0, dtype))
     radii, seconds = np.zeros(scores.shape), []
     for t in range(scores.shape[0]):
-        args = (scores[t, ..., None].astype(dtype), present[t, ..., None],
-                uniforms[t].astype(dtype))
+        args = (scores[t, ..., None].astype(dtype), present[t, ..., None])
+        uniform = uniforms[t].astype(dtype)
         start = time.perf_counter()
-        state, radius = update(state, *args)
+        state, radius = update(state, *args, uniform=uniform)
         radii[t] = np.asarray(jax.block_until_ready(radius))
         seconds.append(time.perf_counter() - start)
     return radii, seconds
@@ -191,7 +191,9 @@ def main() -> None:
     pooled = [(scores[t].T.astype(np.float32), present[t].T, np.float32(0.5)) for t in steps]
     for batch in conformal.BATCH_MODES:
         pooled_method = conformal.dtaci(ALPHA, tuple(GAMMAS), batch=batch)
-        update = jax.jit(jax.vmap(pooled_method.update, (0, 0, 0, None)))
+        update = jax.jit(jax.vmap(lambda state, scores, mask, uniform, m=pooled_method:
+                                  m.update(state, scores, mask, uniform=uniform),
+                                  (0, 0, 0, None)))
         state = jax.vmap(pooled_method.init)(np.float32(0.1) * np.arange(1, p + 1))
         ms = median_ms_per_step(update, state, pooled)
         rows.append(record("conformal", workload=f"pooled DtACI, {p} x batch {n}",

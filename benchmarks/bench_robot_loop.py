@@ -163,8 +163,9 @@ def phase(name: str, model: str, cache: str) -> dict:
     """One phase, in this process (a child of `main`)."""
     imported = time.perf_counter()
     from gst_jax.compiles import count_compiles
+    from gst_jax.conformal import Regions
     from gst_jax.runs import load_model
-    from gst_jax.stream import Regions, Stream
+    from gst_jax.stream import Stream
     result = {"imports_s": time.perf_counter() - imported}
     loading = time.perf_counter()
     run = load_model(model)

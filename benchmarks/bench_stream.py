@@ -25,9 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from common import print_table, record
+from gst_jax.conformal import Regions
 from gst_jax.data import bucket_size
 from gst_jax.runs import load_model
-from gst_jax.stream import Frame, Regions, StreamModel, init_state, make_step
+from gst_jax.stream import Frame, StreamModel, init_state, make_step
 
 
 def walkers(robots: int, people: int, steps: int, step_s: float) -> np.ndarray:

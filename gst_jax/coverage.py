@@ -11,7 +11,8 @@ ceil((n+1)(1-alpha))-th smallest of their scores, per horizon step); every metho
 and mean radius are then measured on the frames after it, the same predictions for all:
 long-run coverage = the fraction of scored predictions whose observed position fell within
 the radius issued with them; whole-horizon coverage = the fraction of predictions with every
-step inside (`joint_coverage`; `simultaneous` calibrates discs for it).
+step inside (`joint_coverage`; `simultaneous` calibrates discs for it, with
+`gst_jax.conformal.simultaneous`).
 """
 
 from __future__ import annotations
@@ -31,9 +32,9 @@ from gst_jax.config import DataConfig
 from gst_jax.data.readers import Tracks
 from gst_jax.figures import conformal_regions
 from gst_jax.progress import Progress
-from gst_jax.stream import Regions, Stream
+from gst_jax.stream import Stream
 
-METHODS = ("split", "aci", "dtaci", "pid")
+METHODS = ("split", *conformal.ONLINE_METHODS)
 ACI_GAMMA = inspect.signature(conformal.aci).parameters["gamma"].default
 
 FrameRows = tuple[int, np.ndarray, np.ndarray]     # frame id, track ids (M,), positions (M, 2)
@@ -98,7 +99,7 @@ def record(run, streams: list[Iterator[FrameRows]], *, calibration: float = 0.3,
     for frames_of_file in filter(None, streams):
         # A recorded file's ids name one person each (its windows assume so too): no
         # restarts for fast movers (ETH's annotations exceed a brisk walk at 46 % of steps).
-        player = Stream(run, regions=Regions(None), convention=convention, seed=seed,
+        player = Stream(run, regions=conformal.Regions(None), convention=convention, seed=seed,
                         capacity=live_tracks(frames_of_file, run.model_config.obs_len),
                         max_speed=None)
         scores, masks, new_slots = [], [], []
@@ -130,8 +131,9 @@ def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool 
     """Coverage and mean radius per horizon step of `method` over a recording, on the frames
     after its calibration, and the snapshot of its best frame (None if there is none). split:
     the radii of the calibration frames' scores; aci / dtaci / pid: the recorded scores fed,
-    as they came back, to the online method (`Regions(method, alpha, pooled, options)`),
-    exactly as a stream with those regions would (DtACI's expert draws from `seed`).
+    as they came back, to the online method (`conformal.Regions(method, alpha, pooled,
+    options)`), exactly as a stream with those regions would (DtACI's expert draws from
+    `seed`).
     bonferroni: every horizon step aims at alpha / P, so that the P discs of a prediction hold
     together with probability at least 1 - alpha (the union bound; `joint_coverage` is that
     figure)."""
@@ -160,7 +162,7 @@ def measure(recording: Recording, method: str, alpha: float = 0.1, pooled: bool 
         issued = [np.broadcast_to(split_radii, s.shape) for s, _ in flat]
         radii_of_file = [np.broadcast_to(split_radii, f[0].shape) for f in files]
     else:
-        regions = Regions(method, alpha, pooled, tuple(options))
+        regions = conformal.Regions(method, alpha, pooled, tuple(options))
         keys = jax.random.split(jax.random.key(seed), max(len(files), 1))
         replayed = [jax.tree.map(np.asarray, _replay(regions, key, *f))
                     for f, key in zip(files, keys)]
@@ -207,90 +209,23 @@ def joint_coverage(files, issued: list[np.ndarray], calibrating: int) -> dict:
     return {"joint_coverage": joint / max(predictions, 1), "joint_predictions": predictions}
 
 
-def _completed(scores: np.ndarray, masks: np.ndarray, made: int
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The horizon-k errors (P, C) of the predictions made at frame `made` (they come back k
-    frames later) and which of them were observed at every step (C,)."""
-    steps = np.arange(scores.shape[-1])
-    return scores[made + 1 + steps, :, steps], masks[made + 1 + steps, :, steps].all(axis=0)
-
-
-def _scales(errors: np.ndarray) -> np.ndarray:
-    """Per horizon step k, the mean of the errors (n, P), from a prior of one error of 0.1 k m."""
-    steps = np.arange(errors.shape[-1])
-    return (errors.sum(axis=0) + 0.1 * (steps + 1)) / (len(errors) + 1)
-
-
 def simultaneous(recording: Recording, method: str, alpha: float = 0.1, options: tuple = (),
                  seed: int = 0) -> dict:
-    """Whole-horizon discs from one score per prediction, calibrated, then adapted online: m =
-    max_k e_k / scale_k over its P steps (e_k its horizon-k distance), known when its last step
-    is observed, P frames after it was made. The calibration frames fix the scales (scale_k:
-    the mean of their horizon-k errors, from a prior of one error of 0.1 k m) and start the
-    online method (`method`: aci, dtaci or pid, pooled over the tracks) from their scores m:
-    ACI's window holds them at level alpha, DtACI's and PID's radius starts at their split
-    conformal quantile. After them the method turns each returned m into q, and the prediction
-    of frame t0 gets radii q(t0) scale_k (metres, (P,)): all P steps are inside exactly when
-    m <= q(t0), so the method's own coverage guarantee is one on the whole horizon. The
-    scales and the method carry over from one file to the next. Predictions with a step
-    unobserved are neither scored nor counted. Reported over the predictions made after the
-    calibration frames: `joint_coverage`, `joint_predictions`, and per step the coverage and
-    the mean radius (`coverage`, `radius`), beside what `measure` reports for per-step discs.
-
-    Why calibrated: scores formed with the scales of their own moment (running means) are not
-    comparable across the stream, and a method started from nothing spends a short stream's
-    first frames with infinite or far too small radii, then compensates; either way the
-    predictions after calibration came out 0.02-0.08 below 0.9 on four of five scenes."""
-    if method not in ("aci", "dtaci", "pid"):
-        raise ValueError(f"simultaneous discs take an online method (aci, dtaci, pid), got "
-                         f"{method!r}")
-    online = getattr(conformal, method)(alpha, **dict(options))
-    update = jax.jit(online.update)
-    files = recording.files
-    horizon = files[0][0].shape[-1] if files else 0
-    state, scale, calibration = None, None, []
-    inside_all, inside, radii, first = [], [], [], 0
-    keys = jax.random.split(jax.random.key(seed), max(len(files), 1))
-    for (scores, masks, _), key in zip(files, keys):
-        frames = scores.shape[0]
-        issued = np.full(frames, np.nan)                  # NaN: made during the calibration
-        uniforms = np.asarray(jax.random.uniform(key, (frames,)))
-        for t in range(frames):
-            if state is None and first + t >= recording.calibrating:
-                errors = np.concatenate(calibration or [np.zeros((0, horizon))])  # (n, P)
-                scale = _scales(errors)
-                state = _calibrated(online, method, alpha, np.max(errors / scale, axis=1))
-            made = t - horizon                          # the predictions completed now
-            if made >= 0:
-                errors, scored = _completed(scores, masks, made)               # (P, C), (C,)
-                if state is None:
-                    calibration.append(errors[:, scored].T)
-                elif not np.isnan(issued[made]):
-                    ratio = np.max(errors / scale[:, None], axis=0)
-                    extra = (np.full(ratio.shape, issued[made]),) if method != "dtaci" else \
-                        (uniforms[t],)
-                    state = update(state, ratio, scored, *extra)[0]
-                    inside_all += (ratio <= issued[made])[scored].tolist()
-                    given = issued[made] * scale                                # (P,)
-                    inside += (errors <= given[:, None]).T[scored].tolist()
-                    radii += [given] * int(scored.sum())
-            if state is not None:
-                issued[t] = float(state.radius)
-        first += frames
-    inside, radii = np.asarray(inside).reshape(-1, horizon), np.asarray(radii).reshape(-1, horizon)
-    return {"method": method, "alpha": alpha, "joint_coverage": float(np.mean(inside_all))
-            if inside_all else float("nan"), "joint_predictions": len(inside_all),
-            "coverage": inside.mean(axis=0).tolist(), "radius": radii.mean(axis=0).tolist()}
-
-
-def _calibrated(online, method: str, alpha: float, scores: np.ndarray):
-    """The online method's state started from calibration scores (n,): ACI's window holds
-    them; DtACI and PID start at their split conformal radius (at their largest where there
-    are too few for the level, at 1 where there are none: a radius they can move from)."""
-    if method == "aci":
-        return online.init(scores=jnp.asarray(scores))
-    radius = float(conformal.split_radius(jnp.asarray(scores), None, alpha))
-    return online.init(radius if np.isfinite(radius) else float(np.max(scores, initial=1.0)))
+    """Whole-horizon discs over a recording (`conformal.simultaneous`: one score per
+    prediction, the largest of its steps' errors over their scales, calibrated on the
+    recording's calibration frames, then adapted online by `method`, aci, dtaci or pid, pooled
+    over the tracks, DtACI's expert draws from `seed`): the method, alpha, and over the
+    predictions made after the calibration frames `joint_coverage`, `joint_predictions` and
+    per step the coverage and the mean radius (`coverage`, `radius`), beside what `measure`
+    reports for per-step discs."""
+    if method not in conformal.ONLINE_METHODS:
+        raise ValueError(f"simultaneous discs take an online method "
+                         f"({', '.join(conformal.ONLINE_METHODS)}), got {method!r}")
+    online = conformal.ONLINE_METHODS[method](alpha, **dict(options))
+    found = conformal.simultaneous(online, [(scores, masks) for scores, masks, _ in
+                                            recording.files],
+                                   recording.calibrating, jax.random.key(seed))
+    return {"method": method, "alpha": alpha, **found}
 
 
 def exchangeable_coverage(recording: Recording, alpha: float = 0.1, permutations: int = 2000,
@@ -306,7 +241,7 @@ def exchangeable_coverage(recording: Recording, alpha: float = 0.1, permutations
     for scores, masks, _ in recording.files:
         frames, _, horizon = scores.shape
         for made in range(max(frames - horizon, 0)):
-            errors, scored = _completed(scores, masks, made)
+            errors, scored = conformal.path_errors(scores, masks, made)
             if scored.any():
                 blocks.append(errors[:, scored].T)
     if len(blocks) < 2:
@@ -318,7 +253,7 @@ def exchangeable_coverage(recording: Recording, alpha: float = 0.1, permutations
     for i in range(permutations):
         order = rng.permutation(len(blocks))
         calibration = np.concatenate([blocks[j] for j in order[:calibrating]])
-        scale = _scales(calibration)
+        scale = conformal.path_scales(calibration)
         # conformal.split_radius in NumPy: its jnp ops would compile again for every
         # calibration size the orders give (hundreds per stream).
         rank = int(np.ceil((len(calibration) + 1) * (1 - alpha)))
@@ -391,7 +326,7 @@ def format_table(result: dict) -> str:
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def _replay(regions: Regions, key: jax.Array, scores: jax.Array, masks: jax.Array,
+def _replay(regions: conformal.Regions, key: jax.Array, scores: jax.Array, masks: jax.Array,
             new_slots: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The radii (F, C, P) a stream with `regions` issues at each of a file's F frames, from
     the scores that came back at each (F, C, P) (`Regions.advance` scanned over the frames),

@@ -26,7 +26,9 @@ Underneath, everything is a pure function of arrays, so that it jits, vmaps over
 
 `Stream` is the convenience around them: numpy in and out, ids in any order, capacity
 growth. The model is any gst_jax model (the paper's, `crowdnav_sim`, ...) or CrowdNav++'s
-(`crowdnav.predict`, with its own input conventions).
+(`crowdnav.predict`, with its own input conventions). Conformal discs around the predictions
+are `gst_jax.conformal.Regions` (importable from here too), issued by `update_regions` from
+the stream's score buffer.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ import numpy as np
 
 from gst_jax.config import ModelConfig
 from gst_jax import conformal, crowdnav
+from gst_jax.conformal import Regions
 from gst_jax.compiles import use_persistent_cache
 from gst_jax.data import SceneBatch, bucket_size, node_mask_from_positions
 from gst_jax.data.batching import LARGEST_COORDINATE
@@ -79,8 +82,8 @@ class StreamState:
       reappeared farther than the maximum speed allows (`observe`'s max_jump).
     feed: the last P predictions of every slot, scored as the future is observed
       (`conformal.ScoreBufferState`), or None without regions.
-    regions: the conformal state of the regions (`Regions`): one instance per horizon step
-      (pooled), or per slot and horizon step; None without.
+    regions: the conformal state of the regions (`gst_jax.conformal.Regions`): one
+      instance per horizon step (pooled), or per slot and horizon step; None without.
     """
 
     track_ids: jax.Array
@@ -107,7 +110,7 @@ class Frame(NamedTuple):
     lost: jax.Array | None = None
 
 
-def init_state(capacity: int, obs_len: int, regions: "Regions | None" = None,
+def init_state(capacity: int, obs_len: int, regions: Regions | None = None,
                pred_len: int = 0) -> StreamState:
     """An empty stream of `capacity` slots (with `regions`: of `pred_len` predicted steps)."""
     state = StreamState(track_ids=jnp.full((capacity,), FREE, jnp.int32),
@@ -184,99 +187,21 @@ def as_batch(state: StreamState) -> SceneBatch:
                       scene_mask=jnp.ones(1), window_index=jnp.zeros(1, jnp.int32))
 
 
-@dataclasses.dataclass(frozen=True)
-class Regions:
-    """Calibrated discs around every predicted step (`gst_jax.conformal`): each prediction is
-    scored k steps later, at horizon k, by its distance to the position observed then, and an
-    online method turns the scores into the next radii.
-
-    method: "dtaci" (GenSafeNav's variant, consistent loss, drawn expert), "aci" (window of 1000
-    scores), "pid" (quantile tracking and integrator), or None: score only, every radius
-    infinite (split conformal is calibrated from those scores,
-    `gst_jax.conformal.split_radius`). alpha: target miscoverage. pooled: one instance per
-    horizon step, fed every track's score (default), or one per slot and horizon step, fed that
-    track's alone (GenSafeNav's ROS 2 node; a new track starts from scratch). options: (name,
-    value) pairs for the method's constructor, e.g. (("gamma", 0.002),) (`conformal.aci`,
-    `conformal.dtaci`, `conformal.pid`). The scored prediction is the mean of the K samples.
-    """
-
-    method: str | None = "dtaci"
-    alpha: float = 0.1
-    pooled: bool = True
-    options: tuple[tuple[str, Any], ...] = ()
-
-    def __post_init__(self):
-        if self.method not in ("dtaci", "aci", "pid", None):
-            raise DataError(f"Regions: method must be 'dtaci', 'aci', 'pid' or None, got "
-                            f"{self.method!r}")
-        if not (isinstance(self.alpha, numbers.Real) and 0 < self.alpha < 1):
-            raise DataError(f"Regions: alpha (the target miscoverage) must lie in (0, 1), got "
-                            f"{self.alpha!r}")
-
-    @property
-    def online(self) -> conformal.OnlineConformal | None:
-        if self.method is None:
-            return None
-        return getattr(conformal, self.method)(self.alpha, **dict(self.options))
-
-    def init(self, capacity: int, horizon: int) -> Any:
-        """Fresh states: (P,) pooled, (C, P) per track; DtACI's experts and PID's tracking
-        start at 0.1 m per horizon step."""
-        if self.online is None:
-            return None
-        start = 0.1 * jnp.arange(1, horizon + 1, dtype=jnp.float32)              # (P,)
-        if not self.pooled:
-            start = jnp.broadcast_to(start, (capacity, horizon))
-        if self.method in ("dtaci", "pid"):
-            init = self.online.init
-            for _ in range(start.ndim):
-                init = jax.vmap(init)
-            return init(start)
-        return jax.tree.map(lambda leaf: jnp.broadcast_to(leaf, start.shape + leaf.shape),
-                            self.online.init(jnp.float32))
-
-    def update(self, state: StreamState, key: jax.Array, new_slots: jax.Array,
-               futures: jax.Array, predicted: jax.Array
-               ) -> tuple[StreamState, jax.Array, conformal.DelayedScores]:
-        """Score the predictions of 1..P steps ago against the positions observed now, update
-        the radii, and keep this step's predictions (futures (K, P, C, 2), predicted (C,)).
-        Returns the state, the radii issued with this step's predictions (C, P) and the
-        delayed scores (scores, mask, issued: (C, P))."""
-        feed = conformal.reset_slots(state.feed, new_slots)
-        mean = jnp.moveaxis(futures.mean(axis=0), 1, 0)                           # (C, P, 2)
-        feed, delayed = conformal.score_buffer_update(
-            feed, mean, predicted > 0, state.positions[:, -1], state.detected[:, -1] > 0)
-        regions, radii = self.advance(state.regions, key, new_slots, delayed)
-        feed = conformal.record_issued(feed, radii)
-        return state.replace(feed=feed, regions=regions), radii, delayed
-
-    def advance(self, regions: Any, key: jax.Array, new_slots: jax.Array,
-                delayed: conformal.DelayedScores) -> tuple[Any, jax.Array]:
-        """The conformal state after the delayed scores (C, P) came back (per track, the
-        `new_slots` (C,) start afresh first), and the radii (C, P) to issue now (infinite
-        without a method)."""
-        capacity, horizon = delayed.scores.shape
-        if regions is None:
-            return None, jnp.full((capacity, horizon), jnp.inf)
-        if not self.pooled:                                     # a new track starts afresh
-            fresh = self.init(capacity, horizon)
-            regions = jax.tree.map(
-                lambda new, old: jnp.where(new_slots.reshape((-1,) + (1,) * (old.ndim - 1)),
-                                           new, old), fresh, regions)
-        scores, mask, issued = delayed
-        if self.pooled:                                         # per horizon: the tracks' batch
-            scores, mask, issued = scores.T, mask.T, issued.T
-        else:                                                   # per slot: a batch of one
-            scores, mask, issued = scores[..., None], mask[..., None], issued[..., None]
-        update = self.online.update
-        for _ in range(regions.radius.ndim):
-            update = jax.vmap(update)
-        if self.method in ("aci", "pid"):                      # judged by the radius issued
-            regions, radii = update(regions, scores, mask, issued)
-        else:
-            regions, radii = update(regions, scores, mask,
-                                    jax.random.uniform(key, regions.radius.shape))
-        return regions, jnp.broadcast_to(radii, (capacity, horizon))
+def update_regions(regions: Regions, state: StreamState, key: jax.Array,
+                   new_slots: jax.Array, futures: jax.Array, predicted: jax.Array
+                   ) -> tuple[StreamState, jax.Array, conformal.DelayedScores]:
+    """Score the predictions of 1..P steps ago against the positions observed now, update
+    the radii (`Regions.advance`; the `new_slots` (C,) start afresh), and keep this step's
+    predictions (futures (K, P, C, 2), predicted (C,)). Returns the state, the radii issued
+    with this step's predictions (C, P) and the delayed scores (scores, mask, issued:
+    (C, P))."""
+    feed = conformal.reset_slots(state.feed, new_slots)
+    mean = jnp.moveaxis(futures.mean(axis=0), 1, 0)                           # (C, P, 2)
+    feed, delayed = conformal.score_buffer_update(
+        feed, mean, predicted > 0, state.positions[:, -1], state.detected[:, -1] > 0)
+    regions_state, radii = regions.advance(state.regions, key, new_slots, delayed)
+    feed = conformal.record_issued(feed, radii)
+    return state.replace(feed=feed, regions=regions_state), radii, delayed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -323,7 +248,7 @@ def make_step(model: StreamModel, regions: Regions | None = None, *,
               max_speed: float | None = None) -> Callable:
     """The pure `step(params, state, frame, key) -> (state, futures, predicted, radii,
     delayed)`: observe the frame, predict every slot (`predict_slots`), and with `regions`
-    score the earlier predictions and issue this step's radii (C, P) (`Regions.update`;
+    score the earlier predictions and issue this step's radii (C, P) (`update_regions`;
     without, radii and delayed are None). max_speed (m/s): a known id seen farther than this
     speed allows since its last detection starts a new track (`observe`); None: never. jit
     it, vmap it over robots."""
@@ -335,8 +260,8 @@ def make_step(model: StreamModel, regions: Regions | None = None, *,
         futures, predicted = predict_slots(model, params, predict_key, state)
         if regions is None:
             return state, futures, predicted, None, None
-        state, radii, delayed = regions.update(state, regions_key, state.fresh, futures,
-                                               predicted)
+        state, radii, delayed = update_regions(regions, state, regions_key, state.fresh,
+                                               futures, predicted)
         return state, futures, predicted, radii, delayed
     return step
 
@@ -376,7 +301,7 @@ class Stream:
     model step (`config.step_s` apart, or give each frame's `time`), the people detected then;
     ids are the tracker's, any non-negative integers.
 
-    regions: conformal discs around the predictions (`Regions`), or None.
+    regions: conformal discs around the predictions (`gst_jax.conformal.Regions`), or None.
     robot: `step` also takes the robot's position, which joins the graph as one more agent
     (the people's predictions may react to it); it is never predicted.
     max_speed: metres per second (default MAX_SPEED, a brisk walk). An id seen farther from

@@ -6,6 +6,7 @@ sequence."""
 from __future__ import annotations
 
 import functools
+import inspect
 
 import chex
 import jax
@@ -20,18 +21,20 @@ ALPHA = 0.1
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def run(update, state, xs):
-    """Scan `update(state, *x)` over the leading axis of xs; -> (final state, the radius in
-    force before each step (T,), the radius after the last ())."""
+def run(update, state, xs, extras=None):
+    """Scan `update(state, *x, **extra)` over the leading axis of xs and of the keyword
+    extras (e.g. {"uniform": (T,)}); -> (final state, the radius in force before each step
+    (T,), the radius after the last ())."""
     def step(state, x):
-        new_state, _ = update(state, *x)
+        positional, extra = x
+        new_state, _ = update(state, *positional, **extra)
         return new_state, state.radius
-    final, before = jax.lax.scan(step, state, xs)
+    final, before = jax.lax.scan(step, state, (xs, extras or {}))
     return final, before, final.radius
 
 
-def radii_of(update, state, *xs) -> np.ndarray:
-    _, before, last = run(update, state, xs)
+def radii_of(update, state, xs, extras=None) -> np.ndarray:
+    _, before, last = run(update, state, xs, extras)
     return np.append(np.asarray(before), np.asarray(last))
 
 
@@ -81,8 +84,8 @@ def test_aci_equals_reference(alpha, gamma, window, in_force, batch):
     method = conformal.aci(alpha, gamma, window, batch)
     with jax.enable_x64(True):
         state = method.init()
-        xs = (scores, mask) if issued is None else (scores, mask, issued)
-        final, before, last = run(method.update, state, xs)
+        extras = None if issued is None else {"radius_in_force": issued}
+        final, before, last = run(method.update, state, (scores, mask), extras)
         assert final.level.dtype == jnp.float64
         assert_same(np.append(before, last), expected["radii"])
         assert final.level == pytest.approx(expected["levels"][-1], abs=1e-12)
@@ -101,7 +104,7 @@ def test_aci_started_from_calibration_scores_holds_the_last_window_of_them():
     np.testing.assert_array_equal(np.sort(np.asarray(state.ordered)), np.sort(scores[-50:]))
     assert float(state.radius) == np.sort(scores[-50:])[45 - 1]
     filled = method.init()
-    filled, _ = method.update(filled, scores, None, jnp.asarray(np.inf))
+    filled, _ = method.update(filled, scores, None, radius_in_force=jnp.asarray(np.inf))
     filled = filled._replace(level=state.level, radius=state.radius)
     after, radius = method.update(state, jnp.asarray([0.5, 90.0]))
     expected, expected_radius = method.update(filled, jnp.asarray([0.5, 90.0]))
@@ -122,7 +125,8 @@ def test_dtaci_equals_reference(loss, output, r_max, batch):
     expected = reference.dtaci(scores, mask, uniforms, q0=0.2, **params)
     method = conformal.dtaci(**params)
     with jax.enable_x64(True):
-        final, before, last = run(method.update, method.init(0.2), (scores, mask, uniforms))
+        final, before, last = run(method.update, method.init(0.2), (scores, mask),
+                                  {"uniform": uniforms})
         assert_same(np.append(before, last), expected["radii"])
         assert_same(final.thresholds, expected["thresholds"][-1])
         assert_same(final.probs, expected["probs"][-1])
@@ -139,8 +143,8 @@ def test_dtaci_with_one_score_per_update_equals_reference():
                                q0=0.1)
     method = conformal.dtaci(ALPHA)
     with jax.enable_x64(True):
-        assert_same(radii_of(method.update, method.init(0.1), scores, mask, uniforms),
-                    expected["radii"])
+        assert_same(radii_of(method.update, method.init(0.1), (scores, mask),
+                             {"uniform": uniforms}), expected["radii"])
 
 
 # (b) vmap over tracks x horizon steps equals a loop -------------------------------------------
@@ -157,8 +161,8 @@ def test_pid_equals_reference(eta, k_i, c_sat, in_force):
                              radii_in_force=issued)
     method = conformal.pid(ALPHA, eta, k_i, c_sat)
     with jax.enable_x64(True):
-        xs = (scores, mask) if issued is None else (scores, mask, issued)
-        final, before, last = run(method.update, method.init(0.3), xs)
+        extras = None if issued is None else {"radius_in_force": issued}
+        final, before, last = run(method.update, method.init(0.3), (scores, mask), extras)
         assert_same(np.append(before, last), expected["radii"])
         assert final.misses == pytest.approx(expected["misses"][-1], abs=1e-9)
     if c_sat < 0.05:
@@ -172,16 +176,15 @@ def test_vmap_over_tracks_and_horizon_steps_equals_a_loop():
     mask = mask.reshape(steps, tracks, horizon, 1)
     uniforms = np.random.default_rng(8).random((steps, tracks, horizon)).astype(np.float32)
     q0 = 0.1 * np.arange(1, horizon + 1) * np.ones((tracks, 1), np.float32)
-    for method, q0s, extra in [(conformal.dtaci(ALPHA), q0, (uniforms,)),
-                               (conformal.aci(ALPHA, 0.05, 16), None, ())]:
-        init = method.init if q0s is not None else (lambda _: method.init())
-        q0s = np.zeros((tracks, horizon), np.float32) if q0s is None else q0s
-        state = jax.vmap(jax.vmap(init))(q0s)
-        both = run(jax.vmap(jax.vmap(method.update)), state, (scores, mask) + extra)[1]
+    for method in (conformal.dtaci(ALPHA), conformal.aci(ALPHA, 0.05, 16),
+                   conformal.pid(ALPHA, 0.05)):
+        state = jax.vmap(jax.vmap(method.init))(q0)
+        both = run(jax.vmap(jax.vmap(method.update)), state, (scores, mask),
+                   {"uniform": uniforms})[1]
         for n in range(tracks):
             for k in range(horizon):
-                xs = (scores[:, n, k], mask[:, n, k]) + tuple(e[:, n, k] for e in extra)
-                alone = run(method.update, init(q0s[n, k]), xs)[1]
+                alone = run(method.update, method.init(q0[n, k]),
+                            (scores[:, n, k], mask[:, n, k]), {"uniform": uniforms[:, n, k]})[1]
                 np.testing.assert_array_equal(alone, both[:, n, k])
 
 
@@ -198,11 +201,11 @@ def streams(seed: int = 11) -> np.ndarray:
     return np.stack([iid, shifted]).astype(np.float32)
 
 
-def coverage(method, state, scores, *extra) -> np.ndarray:
+def coverage(method, state, scores, uniforms=None) -> np.ndarray:
     """The fraction of each stream's scores within the radius in force: (2,)."""
     update = jax.vmap(method.update)
-    xs = (scores.T[..., None], np.ones(scores.T.shape + (1,), bool)) + extra
-    radii = run(update, state, xs)[1].T
+    xs = (scores.T[..., None], np.ones(scores.T.shape + (1,), bool))
+    radii = run(update, state, xs, None if uniforms is None else {"uniform": uniforms})[1].T
     return np.mean(scores <= radii, axis=1)
 
 
@@ -304,9 +307,8 @@ def test_each_method_learns_a_k_step_prediction_only_k_steps_later():
     methods = {"aci": conformal.aci(ALPHA, gamma, window=10),
                "pid": conformal.pid(ALPHA, eta=0.1, k_i=1.0, c_sat=0.1),
                "dtaci": conformal.dtaci(ALPHA, output="mean")}
-    states = {"aci": jax.vmap(lambda _: methods["aci"].init())(np.arange(horizon)),
-              "pid": jax.vmap(methods["pid"].init)(np.full(horizon, 1.0)),
-              "dtaci": jax.vmap(methods["dtaci"].init)(np.full(horizon, 1.0))}
+    states = {name: jax.vmap(method.init)(np.full(horizon, 1.0))
+              for name, method in methods.items()}
     feed = conformal.score_buffer_init(num_tracks=1, horizon=horizon)
     issued_at, came_back = [], []            # the radii (P,) issued at t; what came back at t
     for t, d in enumerate(distances):
@@ -316,9 +318,9 @@ def test_each_method_learns_a_k_step_prediction_only_k_steps_later():
         came_back.append((np.asarray(delayed.scores[0]), np.asarray(delayed.mask[0]),
                           np.asarray(delayed.issued[0])))
         for name, method in methods.items():
-            extra = (delayed.issued.T,) if name != "dtaci" else ()
             states[name], radius = jax.vmap(method.update)(
-                states[name], delayed.scores.T, delayed.mask.T, *extra)
+                states[name], delayed.scores.T, delayed.mask.T,
+                radius_in_force=delayed.issued.T)
             if name == "aci":
                 feed = conformal.record_issued(feed, radius[None])
                 issued_at.append(np.asarray(radius))
@@ -366,7 +368,7 @@ def test_aci_fed_through_the_buffer_covers_the_discs_it_issued(batch):
         feed, state = carry
         feed, delayed = conformal.score_buffer_update(feed, x[0], everyone, x[1], everyone)
         state, radius = jax.vmap(method.update)(state, delayed.scores.T, delayed.mask.T,
-                                                delayed.issued.T)
+                                                radius_in_force=delayed.issued.T)
         feed = conformal.record_issued(feed, jnp.broadcast_to(radius, (tracks, horizon)))
         return (feed, state), (delayed.scores <= delayed.issued, delayed.mask)
 
@@ -390,26 +392,25 @@ def test_aci_fed_through_the_buffer_covers_the_discs_it_issued(batch):
 
 def test_a_masked_score_changes_nothing():
     scores, mask = np.array([0.3, 5.0, 0.1]), np.array([True, False, True])
-    for method, state, extra in [(conformal.aci(ALPHA, 0.05, 4), (), ()),
-                                 (conformal.dtaci(ALPHA), (0.2,), (0.5,))]:
-        update = jax.jit(method.update)
-        state = method.init(*state)
+    for method in (conformal.aci(ALPHA, 0.05, 4), conformal.dtaci(ALPHA), conformal.pid(ALPHA)):
+        update = jax.jit(functools.partial(method.update, uniform=0.5))
+        state = method.init(0.2)
         for _ in range(3):                            # the window of 4 is full and turns
-            state = update(state, scores, mask, *extra)[0]
-        same = update(state, np.array([9.0, 0.2, 0.4]), np.zeros(3, bool), *extra)[0]
+            state = update(state, scores, mask)[0]
+        same = update(state, np.array([9.0, 0.2, 0.4]), np.zeros(3, bool))[0]
         chex.assert_trees_all_equal(same, state)
-        partial = update(state, scores, mask, *extra)[0]
-        dropped = update(state, scores[mask], None, *extra)[0]
+        partial = update(state, scores, mask)[0]
+        dropped = update(state, scores[mask], None)[0]
         chex.assert_trees_all_equal(partial, dropped)
-    with pytest.raises(ValueError, match="a batch"):
-        method.update(method.init(0.2), scores[:, None], None, 0.5)
+        with pytest.raises(ValueError, match="a batch"):
+            method.update(method.init(0.2), scores[:, None], None, uniform=0.5)
 
 
 def test_jit_compiles_once_per_shape():
     method = conformal.dtaci(ALPHA)
 
     def step(state, scores, mask, uniforms):              # 5 horizon steps x tracks
-        return jax.vmap(jax.vmap(method.update))(state, scores, mask, uniforms)
+        return jax.vmap(jax.vmap(method.update))(state, scores, mask, uniform=uniforms)
 
     update = jax.jit(chex.assert_max_traces(step, n=2))    # two shapes: two traces
     rng = np.random.default_rng(12)
@@ -457,3 +458,52 @@ def test_the_command_refuses_alpha_and_calibration_outside_0_1_when_parsed(
     assert refused.value.code == 2
     assert capsys.readouterr().err.splitlines()[-1].endswith(
         f"argument {flag}: must lie strictly between 0 and 1, got {value}")
+
+
+# (g) one interface for every method ------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def drive(method, state, scores, mask, uniforms):
+    """The generic driver: one `update` per row of scores (T, B) with the same arguments
+    whatever the method, each batch judged against the radius in force; -> (the radius in
+    force before each update, the radius each returned, the state's radius after it), (T,)
+    each."""
+    def step(state, x):
+        batch, valid, uniform = x
+        new, radius = method.update(state, batch, valid, radius_in_force=state.radius,
+                                    uniform=uniform)
+        return new, (state.radius, radius, new.radius)
+    return jax.lax.scan(step, state, (scores, mask, uniforms))[1]
+
+
+def test_every_method_has_one_signature_and_runs_through_one_generic_driver():
+    """Every method of `conformal.ONLINE_METHODS` (one added there is driven too) with its
+    defaults: the same `init` and `update` signature, and the same loop of calls on the same
+    exchangeable stream (i.i.d. Rayleigh scores of 0.3 m, batches of 4 with a fifth masked
+    out): each starts at the radius `init` was given (in its dtype), starts from calibration
+    scores within their range, holds in its state the radius its update returned, and covers
+    1 - alpha of the scores in the long run. Measured: ACI 0.9000, DtACI 0.9003, PID 0.8994."""
+    steps, batch = 8000, 4
+    rng = np.random.default_rng(21)
+    scores = rng.rayleigh(0.3, (steps, batch)).astype(np.float32)
+    mask = rng.random((steps, batch)) < 0.8
+    uniforms = rng.random(steps).astype(np.float32)
+    calibration = rng.rayleigh(0.3, 50).astype(np.float32)
+    signatures = set()
+    assert set(conformal.ONLINE_METHODS) >= {"aci", "dtaci", "pid"}
+    for name, make in conformal.ONLINE_METHODS.items():
+        method = make(ALPHA)
+        signatures.add(tuple((p.name, p.kind, p.default) for function in (method.init,
+                                                                          method.update)
+                             for p in inspect.signature(function).parameters.values()))
+        state = method.init(0.3, dtype=jnp.float32)
+        assert float(state.radius) == pytest.approx(0.3) and state.radius.dtype == jnp.float32
+        started = method.init(0.3, scores=calibration, dtype=jnp.float32)
+        assert calibration.min() <= float(started.radius) <= calibration.max(), name
+        before, returned, held = map(np.asarray, drive(method, state, scores, mask, uniforms))
+        np.testing.assert_array_equal(returned, held, err_msg=name)
+        np.testing.assert_array_equal(before[1:], returned[:-1], err_msg=name)
+        covered = np.sum(mask & (scores <= before[:, None])) / np.sum(mask)
+        assert covered == pytest.approx(1 - ALPHA, abs=0.01), name
+    assert len(signatures) == 1, "the methods' init or update signatures differ"

@@ -117,7 +117,8 @@ def test_a_built_wheel_runs_data_stats_and_predict_from_any_folder(installed):
 STREAM = """
 import numpy as np, gst_jax.stream
 from gst_jax.runs import load_model
-from gst_jax.stream import Regions, Stream
+from gst_jax.conformal import Regions
+from gst_jax.stream import Stream
 
 run = load_model("pretrained:crowdnav_sj")
 stream = Stream(run, regions=Regions("dtaci", alpha=0.1))

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from gst_jax import navigate
+from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
@@ -26,7 +27,6 @@ from gst_jax.simulate.crowdnav.navigation import (described_run, episode_measure
                                                   per_episode, record_name, row_label,
                                                   run_episodes, same_episodes, summary)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
-from gst_jax.stream import Regions
 
 
 def _observation(humans, radii=0.0):

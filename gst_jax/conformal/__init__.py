@@ -8,33 +8,43 @@ seen so far into the radius to use next, aiming at miscoverage `alpha` (e.g. 0.1
 instance per horizon step (pooled) or per track and horizon step (per track), always as
 separate instances, since scores of different horizons have different scales.
 
-Each online method is a pair of pure functions, like optax's `GradientTransformation`:
-`init(...) -> state` and `update(state, scores, mask, ...) -> (state, radius)`, the state a
-NamedTuple of arrays that holds `radius`, the radius in force until the next update. They jit,
-vmap over any leading axes (tracks, horizon steps, environments) and scan over time:
+Each online method is a pair of pure functions, like optax's `GradientTransformation`, with
+one signature for all of them (`OnlineConformal`): `init(initial_radius=None, *, scores=None,
+dtype=None) -> state` and `update(state, scores, mask=None, *, radius_in_force=None,
+uniform=None) -> (state, radius)`, the state a NamedTuple of arrays that holds `radius`, the
+radius in force until the next update. The keyword extras are the same for every method: one
+that does not need an extra (DtACI judges no score against the radius in force; ACI and PID
+draw nothing) accepts it and ignores it, so a caller never asks which method it holds. They
+jit, vmap over any leading axes (tracks, horizon steps, environments) and scan over time:
 
-    method = conformal.dtaci(alpha=0.1)
+    method = conformal.dtaci(alpha=0.1)              # or ONLINE_METHODS[name](alpha=0.1)
     state = jax.vmap(jax.vmap(method.init))(q0)                  # q0 (N, P): 0.1 * k metres
     feed = conformal.score_buffer_init(num_tracks=N, horizon=P)
     # per time step:
     feed, delayed = conformal.score_buffer_update(feed, predicted, valid, observed, detected)
     per_track = jax.vmap(jax.vmap(method.update))                  # batch of 1 score each
     state, radius = per_track(state, delayed.scores[..., None], delayed.mask[..., None],
-                              jax.random.uniform(key, (N, P)))     # radius (N, P)
+                              radius_in_force=delayed.issued[..., None],
+                              uniform=jax.random.uniform(key, (N, P)))   # radius (N, P)
     feed = conformal.record_issued(feed, radius)                  # back with its scores
 
     pooled = jax.vmap(method.update)                               # one instance per horizon
-    state, radius = pooled(state, delayed.scores.T, delayed.mask.T, uniforms_p)  # (P,)
+    state, radius = pooled(state, delayed.scores.T, delayed.mask.T,
+                           radius_in_force=delayed.issued.T, uniform=uniforms_p)    # (P,)
+
+`Regions` does exactly this for a stream's track slots, pooled or per track, and
+`simultaneous` gives whole-path discs instead.
 
 **Pooled vs per track.** Per track: an instance per (track, horizon step) learns that
 person's radius from that person's scores alone (GenSafeNav's ROS 2 node; a new person starts
 from scratch). Pooled: an instance per horizon step gets, at each time step, the batch of
 scores of every detected track (at most one per track; `mask` marks those present), and gives
 one radius to everyone. A masked entry changes nothing; an update whose entries are all
-masked leaves the state as it was.
+masked leaves the state as it was (but for ACI's `initial_radius`, in force until its first
+update, which replaces it with its window's quantile).
 
 The methods, one module each under `gst_jax/conformal/_src/`, whose docstring gives the
-method's equations and guarantees:
+method's equations and guarantees, and what runs them:
 
 - `split_radius` (`split.py`): split conformal, a radius fixed from calibration scores;
 - `aci` (`aci.py`): adaptive conformal inference (Gibbs & Candès 2021);
@@ -42,7 +52,13 @@ method's equations and guarantees:
 - `pid` (`pid.py`): conformal PID control's quantile tracking and integrator (Angelopoulos,
   Candès & Tibshirani 2023);
 - `score_buffer_init`, `score_buffer_update`, `record_issued`, `reset_slots` (`delayed.py`):
-  the delayed scores of a stream of predictions and observations.
+  the delayed scores of a stream of predictions and observations;
+- `Regions`, `ONLINE_METHODS` (`regions.py`): the per-step discs of a stream's track slots,
+  one instance per horizon step (pooled) or per slot and horizon step, the method by name
+  (what `gst_jax.stream` and `gst_jax.coverage` run);
+- `simultaneous`, `path_errors`, `path_scales` (`paths.py`): whole-path discs, one score per
+  prediction (the largest of its steps' errors over their scales), so that all P steps of a
+  prediction hold together.
 
 The plain-numpy references of the update equations are in gst_jax/testing/
 conformal_reference.py; tests/test_conformal.py checks these functions against them.
@@ -54,9 +70,12 @@ from gst_jax.conformal._src.delayed import (DelayedScores, ScoreBufferState, rec
                                             reset_slots, score_buffer_init,
                                             score_buffer_update)
 from gst_jax.conformal._src.dtaci import DtACIState, dtaci
+from gst_jax.conformal._src.paths import path_errors, path_scales, simultaneous
 from gst_jax.conformal._src.pid import PIDState, pid
+from gst_jax.conformal._src.regions import ONLINE_METHODS, Regions
 from gst_jax.conformal._src.split import split_radius
 
-__all__ = ["ACIState", "DelayedScores", "DtACIState", "OnlineConformal", "PIDState",
-           "ScoreBufferState", "aci", "dtaci", "pid", "record_issued", "reset_slots",
-           "score_buffer_init", "score_buffer_update", "split_radius"]
+__all__ = ["ACIState", "DelayedScores", "DtACIState", "ONLINE_METHODS", "OnlineConformal",
+           "PIDState", "Regions", "ScoreBufferState", "aci", "dtaci", "path_errors",
+           "path_scales", "pid", "record_issued", "reset_slots", "score_buffer_init",
+           "score_buffer_update", "simultaneous", "split_radius"]

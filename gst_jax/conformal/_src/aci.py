@@ -80,17 +80,21 @@ def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000,
     scores; alpha: target miscoverage, gamma: step of the level; batch: "sequential" (one
     step per valid score) or "mean" (one step per update, with the batch's miss fraction).
 
-    init(dtype=None, scores=None) -> ACIState: level alpha, no scores, radius +inf (nothing
-      seen yet); or, given calibration scores (n,), a window holding them (the last `window`)
-      and their (1 - alpha) quantile as the radius.
-    update(state, scores (B,), mask (B,) = None, radius_in_force = None) -> (state, radius):
-      each valid score misses when it is above the radius in force (`state.radius`, or
-      `radius_in_force`, () or (B,), the radii issued with the predictions these scores
-      belong to, for delayed feedback: `DelayedScores.issued`); level += gamma (alpha - miss)
-      for each of them (sequential) or gamma (alpha - mean miss) once (mean); the valid
-      scores enter the window in order, each pushing out the oldest once it is full;
-      radius = the (1 - level) quantile of the window. Scores must be finite where valid. No
-      valid score: nothing changes.
+    init(initial_radius=None, *, scores=None, dtype=None) -> ACIState: level alpha, no
+      scores, radius `initial_radius` (+inf for None: nothing seen yet), the radius in force
+      until the first update; or, given calibration scores (n,), a window holding them (the
+      last `window`) and their (1 - alpha) quantile as the radius (+inf for none;
+      `initial_radius` unused).
+    update(state, scores (B,), mask (B,) = None, *, radius_in_force = None, uniform = None)
+      -> (state, radius): each valid score misses when it is above the radius in force
+      (`state.radius`, or `radius_in_force`, () or (B,), the radii issued with the
+      predictions these scores belong to, for delayed feedback: `DelayedScores.issued`);
+      level += gamma (alpha - miss) for each of them (sequential) or gamma (alpha - mean miss)
+      once (mean); the valid scores enter the window in order, each pushing out the oldest
+      once it is full; radius = the (1 - level) quantile of the window. Scores must be finite
+      where valid. No valid score: the level and the window stay (the radius is their
+      quantile, the same unless `init`'s initial_radius was still in force). `uniform` is
+      accepted for the common signature and unused: ACI draws nothing.
 
     The window is kept sorted as well, one score in and one out in O(W) each, so that an
     update costs O(B W), not a sort of W (measured: benchmarks/bench_conformal.py).
@@ -100,9 +104,11 @@ def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000,
         raise ValueError(f"window must be >= 1 (got {window}) and batch one of {BATCH_MODES} "
                          f"(got {batch!r})")
 
-    def init(dtype=None, scores: jax.Array | None = None) -> ACIState:
+    def init(initial_radius=None, *, scores: jax.Array | None = None, dtype=None
+             ) -> ACIState:
         level = jnp.asarray(alpha, dtype or float)
-        state = ACIState(level=level, radius=jnp.asarray(jnp.inf, level.dtype),
+        radius = jnp.inf if initial_radius is None else initial_radius
+        state = ACIState(level=level, radius=jnp.asarray(radius, level.dtype),
                          scores=jnp.zeros((window,), level.dtype),
                          ordered=jnp.full((window,), jnp.inf, level.dtype),
                          count=jnp.zeros((), jnp.int32), head=jnp.zeros((), jnp.int32))
@@ -125,8 +131,9 @@ def aci(alpha: float = 0.1, gamma: float = 0.005, window: int = 1000,
         head = jnp.where(valid, (head + 1) % window, head)
         return (scores, ordered, count, head), None
 
-    def update(state: ACIState, scores: jax.Array, mask: jax.Array | None = None,
-               radius_in_force: jax.Array | None = None) -> tuple[ACIState, jax.Array]:
+    def update(state: ACIState, scores: jax.Array, mask: jax.Array | None = None, *,
+               radius_in_force: jax.Array | None = None, uniform: jax.Array | None = None
+               ) -> tuple[ACIState, jax.Array]:
         scores, mask = scores_and_mask(scores, mask, state.scores.dtype)
         radius = state.radius if radius_in_force is None else radius_in_force
         present = jnp.sum(mask)

@@ -15,8 +15,19 @@ BATCH_MODES = ("sequential", "mean")
 
 @dataclasses.dataclass(frozen=True)
 class OnlineConformal:
-    """An online conformal method: `init(...) -> state`, `update(state, scores, mask, ...) ->
-    (state, radius)`; both pure, for one instance (vmap for more)."""
+    """An online conformal method, a pair of pure functions for one instance (vmap for
+    more), the same signature for every method:
+
+    init(initial_radius=None, *, scores=None, dtype=None) -> state: the radius in force
+      before the first update (None: the method's own start), or calibration scores (n,)
+      to start from.
+    update(state, scores (B,), mask (B,) = None, *, radius_in_force=None, uniform=None) ->
+      (state, radius): the scores that came back, each judged against `radius_in_force`
+      (the radius issued with its prediction; `state.radius` for None), `uniform` a draw in
+      [0, 1) for a method that draws (DtACI's expert); `state.radius` is the radius returned.
+
+    An extra a method does not need it accepts and ignores, so that a caller passes the same
+    arguments whatever the method."""
 
     init: Callable[..., Any]
     update: Callable[..., tuple[Any, jax.Array]]

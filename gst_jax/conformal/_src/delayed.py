@@ -4,7 +4,7 @@
 into the delayed scores: at each step, for k = 1..P, the horizon-k score of the prediction
 made k steps earlier, masked where that track's prediction was not valid then or the track is
 not detected now; `record_issued` keeps the radii given out with a prediction, which come
-back with its scores (ACI's `radius_in_force`, for the coverage of the discs actually
+back with its scores (`update`'s `radius_in_force`, for the coverage of the discs actually
 used). Track slots are fixed: a slot given to a new person must be cleared with `reset_slots`
 (and its per-track conformal state re-initialised by the caller).
 """
@@ -79,7 +79,7 @@ def score_buffer_update(state: ScoreBufferState, predicted: jax.Array, valid: ja
 def record_issued(state: ScoreBufferState, issued: jax.Array) -> ScoreBufferState:
     """Keep `issued` (N, P) (the radii given out with the prediction the last update stored,
     once the conformal update of that step has made them), to come back with its scores as
-    `DelayedScores.issued`: the radius in force for ACI's `radius_in_force`."""
+    `DelayedScores.issued`: the radius in force, `update`'s `radius_in_force`."""
     slot = (state.step - 1) % state.predicted.shape[0]
     return state._replace(issued=state.issued.at[slot].set(
         jnp.asarray(issued, state.issued.dtype)))

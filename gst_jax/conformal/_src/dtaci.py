@@ -59,6 +59,7 @@ import jax.numpy as jnp
 
 from gst_jax.conformal._src.base import (BATCH_MODES, LOSSES, OUTPUTS, OnlineConformal,
                                             check_alpha, scores_and_mask)
+from gst_jax.conformal._src.split import start_radius
 
 
 class DtACIState(NamedTuple):
@@ -84,12 +85,18 @@ def dtaci(alpha: float = 0.1, gammas=(0.05, 0.1, 0.2), eta: float = 2.72,
     expert's radius) or "mean" (sum p_i q_i); r_max: the output is clipped to [0, r_max]
     (GenSafeNav: 1 m); batch: "sequential" or "mean", how a batch of scores is taken.
 
-    init(q0, dtype=None) -> DtACIState: every expert at q0, weights 1, radius clip(q0).
-    update(state, scores (B,), mask (B,) = None, uniform = None) -> (state, radius): for each
-      expert, u = s - q_i, l_i = loss(u), q_i <- q_i - gamma_i (alpha - 1{q_i < s});
-      wbar_i = w_i exp(-eta l_i), w_i <- (1 - sigma) wbar_i / sum(wbar) + sigma / K,
-      p = w / sum(w); then the expert is drawn from p with `uniform` (in [0, 1), one per
-      update; unused for output="mean"). No valid score: nothing changes.
+    init(initial_radius=None, *, scores=None, dtype=None) -> DtACIState: every expert at
+      q0 = `initial_radius` (0 for None), weights 1, radius clip(q0); given calibration
+      scores (n,), q0 is their split-conformal radius (`split_radius`: the
+      ceil((n+1)(1-alpha))-th smallest), or `initial_radius` where they are too few for the
+      level.
+    update(state, scores (B,), mask (B,) = None, *, radius_in_force = None, uniform = None)
+      -> (state, radius): for each expert, u = s - q_i, l_i = loss(u), q_i <- q_i - gamma_i
+      (alpha - 1{q_i < s}); wbar_i = w_i exp(-eta l_i), w_i <- (1 - sigma) wbar_i / sum(wbar)
+      + sigma / K, p = w / sum(w); then the expert is drawn from p with `uniform` (in [0, 1),
+      one per update; unused for output="mean"). No valid score: nothing changes.
+      `radius_in_force` is accepted for the common signature and unused: each expert is
+      judged by its own radius.
     """
     check_alpha(alpha)
     if loss not in LOSSES or output not in OUTPUTS or batch not in BATCH_MODES:
@@ -114,8 +121,9 @@ def dtaci(alpha: float = 0.1, gammas=(0.05, 0.1, 0.2), eta: float = 2.72,
         chosen = thresholds[expert] if output == "sample" else jnp.sum(probs * thresholds)
         return jnp.clip(chosen, 0, r_max)
 
-    def init(q0, dtype=None) -> DtACIState:
-        q0 = jnp.asarray(q0, dtype or float)
+    def init(initial_radius=None, *, scores: jax.Array | None = None, dtype=None
+             ) -> DtACIState:
+        q0 = start_radius(alpha, initial_radius, scores, dtype)
         thresholds = jnp.full((num_experts,), q0, q0.dtype)
         probs = jnp.full((num_experts,), 1 / num_experts, q0.dtype)
         expert = jnp.zeros((), jnp.int32)
@@ -123,8 +131,9 @@ def dtaci(alpha: float = 0.1, gammas=(0.05, 0.1, 0.2), eta: float = 2.72,
                           probs=probs, expert=expert,
                           radius=radius_of(thresholds, probs, expert))
 
-    def update(state: DtACIState, scores: jax.Array, mask: jax.Array | None = None,
-               uniform: jax.Array | None = None) -> tuple[DtACIState, jax.Array]:
+    def update(state: DtACIState, scores: jax.Array, mask: jax.Array | None = None, *,
+               radius_in_force: jax.Array | None = None, uniform: jax.Array | None = None
+               ) -> tuple[DtACIState, jax.Array]:
         dtype = state.thresholds.dtype
         scores, mask = scores_and_mask(scores, mask, dtype)
         if uniform is None:

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax.conformal._src.base import OnlineConformal, check_alpha, scores_and_mask
+from gst_jax.conformal._src.split import start_radius
 
 
 class PIDState(NamedTuple):
@@ -64,12 +65,16 @@ def pid(alpha: float = 0.1, eta: float = 0.02, k_i: float = 1.0, c_sat: float = 
     coverage error without infinite radii on the scenes' validation streams
     (results/conformal_selection.md, `experiments/conformal_coverage.py --select`).
 
-    init(q0=0.0, dtype=None) -> PIDState: p_1 = q0, no scores, radius max(q0, 0).
-    update(state, scores (B,), mask (B,) = None, radius_in_force = None) -> (state, radius):
-      for each valid score in order, err = 1{s > radius in force} (`state.radius`, or
-      `radius_in_force`, () or (B,), the radii issued with the predictions these scores
-      belong to), p += eta (err - alpha), S += err - alpha, t += 1; then radius =
-      max(p + r_t(S), 0). No valid score: nothing changes.
+    init(initial_radius=None, *, scores=None, dtype=None) -> PIDState: p_1 = q0 =
+      `initial_radius` (0 for None), no scores, radius max(q0, 0); given calibration scores
+      (n,), q0 is their split-conformal radius (`split_radius`: the ceil((n+1)(1-alpha))-th
+      smallest), or `initial_radius` where they are too few for the level.
+    update(state, scores (B,), mask (B,) = None, *, radius_in_force = None, uniform = None)
+      -> (state, radius): for each valid score in order, err = 1{s > radius in force}
+      (`state.radius`, or `radius_in_force`, () or (B,), the radii issued with the
+      predictions these scores belong to), p += eta (err - alpha), S += err - alpha, t += 1;
+      then radius = max(p + r_t(S), 0). No valid score: nothing changes. `uniform` is
+      accepted for the common signature and unused: PID draws nothing.
     """
     check_alpha(alpha)
     if not (eta > 0 and k_i > 0 and c_sat > 0):
@@ -78,14 +83,16 @@ def pid(alpha: float = 0.1, eta: float = 0.02, k_i: float = 1.0, c_sat: float = 
     def radius_of(tracking, misses, count):
         return jnp.maximum(tracking + saturation(misses, count, k_i, c_sat), 0)
 
-    def init(q0=0.0, dtype=None) -> PIDState:
-        tracking = jnp.asarray(q0, dtype or float)
+    def init(initial_radius=None, *, scores: jax.Array | None = None, dtype=None
+             ) -> PIDState:
+        tracking = start_radius(alpha, initial_radius, scores, dtype)
         misses = jnp.zeros((), tracking.dtype)
         count = jnp.zeros((), jnp.int32)
         return PIDState(tracking, misses, count, radius_of(tracking, misses, count))
 
-    def update(state: PIDState, scores: jax.Array, mask: jax.Array | None = None,
-               radius_in_force: jax.Array | None = None) -> tuple[PIDState, jax.Array]:
+    def update(state: PIDState, scores: jax.Array, mask: jax.Array | None = None, *,
+               radius_in_force: jax.Array | None = None, uniform: jax.Array | None = None
+               ) -> tuple[PIDState, jax.Array]:
         scores, mask = scores_and_mask(scores, mask, state.tracking.dtype)
         # The batch's radii were all issued before any of its scores came back.
         issued = jnp.broadcast_to(jnp.asarray(

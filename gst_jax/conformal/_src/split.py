@@ -30,3 +30,14 @@ def split_radius(scores: jax.Array, mask: jax.Array | None, alpha: float) -> jax
     ordered = jnp.sort(jnp.where(mask, scores, jnp.inf))
     index = jnp.clip(rank.astype(jnp.int32) - 1, 0, scores.shape[0] - 1)
     return jnp.where(rank > n, jnp.inf, ordered[index])
+
+
+def start_radius(alpha: float, initial_radius, scores: jax.Array | None, dtype) -> jax.Array:
+    """Where a method that tracks a radius (DtACI, PID) starts: `initial_radius` (0 for
+    None), or, given calibration scores (n,), their split-conformal radius, and
+    `initial_radius` where they are too few for the level; in `dtype` (float for None)."""
+    start = jnp.asarray(0.0 if initial_radius is None else initial_radius, dtype or float)
+    if scores is None:
+        return start
+    radius = split_radius(jnp.asarray(scores, start.dtype), None, alpha)
+    return jnp.where(jnp.isfinite(radius), radius, start).astype(start.dtype)

@@ -39,7 +39,7 @@ own next positions (TRUTH: every human moved on by the rules above, its goal kep
 at its velocity; exact but for goal changes and replaced humans, an upper bound on what any
 predictor can give), for the humans detected at both of the last two steps; without a model
 the observation carries the current positions only (CrowdNav++'s no-prediction task). With
-`regions`, each predicted step also gets a conformal radius (`gst_jax.stream.Regions`),
+`regions`, each predicted step also gets a conformal radius (`gst_jax.conformal.Regions`),
 scored as the humans move on.
 
 A distribution shift (`shift`), from `EnvParams.shift_at_s` into every episode: SPEED_SHIFT
@@ -67,10 +67,11 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax import conformal
+from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
 from gst_jax.simulate.agents import motion
 from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
-from gst_jax.stream import Regions, StreamModel, StreamState, init_state, predict_slots
+from gst_jax.stream import StreamModel, StreamState, init_state, predict_slots, update_regions
 
 # Outcomes of a step (info["outcome"]), CrowdNav++'s info classes.
 NOTHING, REACH_GOAL, COLLISION, TIMEOUT, DISCOMFORT = range(5)
@@ -177,7 +178,7 @@ class CrowdNav:
     """The environment: `num_humans` humans; predictions over `obs_len` observed steps for
     `pred_len` by `model`: a `StreamModel` (its weights in `EnvParams.predictor`),
     CONSTANT_VELOCITY, STANDING, TRUTH or None (no prediction); with `regions`, conformal
-    radii around the predicted steps (`gst_jax.stream.Regions`); the humans walk by ORCA or
+    radii around the predicted steps (`gst_jax.conformal.Regions`); the humans walk by ORCA or
     SOCIAL_FORCE (`human_policy`), seeing the robot where `reactive`, shifted by `shift`."""
 
     num_humans: int = 20
@@ -364,8 +365,8 @@ class CrowdNav:
         futures = jnp.where(predicted[:, None, None], futures, now[:, None])
         radii = jnp.zeros((self.num_humans, self.pred_len))
         if self.regions is not None and self.model is not None:
-            tracks, radii, _ = self.regions.update(
-                tracks, key, jnp.zeros(self.num_humans, bool),
+            tracks, radii, _ = update_regions(
+                self.regions, tracks, key, jnp.zeros(self.num_humans, bool),
                 jnp.swapaxes(futures, 0, 1)[None], predicted)
             state = state.replace(tracks=tracks)
         relative = jnp.concatenate([now[:, None], futures], axis=1) - state.robot_position
