@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import coverage, data, stream
+from gst_jax import conformal, coverage, data, stream
 from gst_jax.compiles import count_compiles
 from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
@@ -162,7 +162,7 @@ def test_regions_are_issued_with_the_predictions_and_scored_k_steps_later(method
     run = load_model("pretrained:crowdnav_sim")
     grid = run.model_config.grid
     tracks = to_model_rate(read_tracks(SIM), 4.0, grid.hz)
-    regions = stream.Regions(method, alpha=0.1, pooled=pooled)
+    regions = conformal.Regions(method, alpha=0.1, pooled=pooled)
     player = stream.Stream(run, regions=regions)
     covered = scored = 0
     issued_before = {}
@@ -194,7 +194,7 @@ def test_measuring_a_recording_gives_what_a_stream_with_regions_issues(method, p
     run = load_model("pretrained:crowdnav_sim")
     tracks = to_model_rate(read_tracks(SIM), 4.0, run.model_config.grid.hz)
     frames = frames_of(tracks)[:80]
-    regions = stream.Regions(method, 0.1, pooled, options)
+    regions = conformal.Regions(method, 0.1, pooled, options)
     player = stream.Stream(run, regions=regions, capacity=coverage.live_tracks(frames, 8))
     delayed = [player.step(ids, xy).delayed for _, ids, xy in frames]
     recording = coverage.record(run, [iter(frames)], calibration=0.25)
@@ -305,7 +305,7 @@ def test_after_warm_up_a_growing_crowd_compiles_nothing(sim_run):
     """Every compilation is counted, a program loaded from the persistent cache included:
     after warm_up(20), a crowd growing from 2 to 20 people (capacity 8 -> 24), with a
     forgotten id and a recycled one on the way, compiles nothing."""
-    player = stream.Stream(sim_run, regions=stream.Regions("dtaci", 0.1))
+    player = stream.Stream(sim_run, regions=conformal.Regions("dtaci", 0.1))
     assert player.warm_up(20) == (8, 16, 24)
     assert player.state.capacity == 8 and player.frames == 0
     xy = walkers(20, 30)
@@ -342,7 +342,7 @@ def test_a_restarted_robot_imports_only_what_predicting_needs():
     for checkpoints) nor a jax dtype package that spends 0.6 s registering its types: the
     restarted process's first prediction stays under 2 s (benchmarks/bench_robot_loop.py)."""
     program = ("import sys, ml_dtypes; from gst_jax.runs import load_model; "
-               "from gst_jax.stream import Regions, Stream; "
+               "from gst_jax.conformal import Regions; from gst_jax.stream import Stream; "
                "Stream(load_model('pretrained:crowdnav_sj'), regions=Regions('dtaci', 0.1)); "
                "print('orbax.checkpoint' in sys.modules, ml_dtypes.__version__)")
     loaded, version = subprocess.run([sys.executable, "-c", program], capture_output=True,
@@ -374,7 +374,7 @@ def test_a_recycled_id_starts_a_new_track_and_the_old_persons_scores_are_dropped
     """A tracker recycles id 1 for someone 10 m away: a new track (nothing glued to the old
     history, no 10 m step predicted), and the old person's pending predictions are never
     scored against the newcomer; the other person's are."""
-    player = stream.Stream(sim_run, regions=stream.Regions("dtaci", 0.1))
+    player = stream.Stream(sim_run, regions=conformal.Regions("dtaci", 0.1))
     for t in range(8):
         out = player.step([1, 2], [[0.3 * t, 0.0], [5.0, 0.2 * t]])
     assert out.restarted.size == 0 and sorted(out.ids.tolist()) == [1, 2]
@@ -410,7 +410,7 @@ def test_a_jump_is_judged_over_the_steps_since_the_last_detection(sim_run):
 
 
 def test_a_forgotten_id_seen_again_is_a_new_track(sim_run):
-    player = stream.Stream(sim_run, regions=stream.Regions("dtaci", 0.1))
+    player = stream.Stream(sim_run, regions=conformal.Regions("dtaci", 0.1))
     for t in range(7):
         player.step([6, 7], [[0.3 * t, 0.0], [3.0, 0.3 * t]])
     player.forget([7, 99])                           # 99: never seen, nothing to forget
@@ -484,7 +484,7 @@ def test_positions_must_be_one_row_per_id_within_range(sim_run):
 def test_regions_refuse_an_alpha_outside_0_1_in_one_line(alpha):
     with pytest.raises(DataError, match=r"^Regions: alpha \(the target miscoverage\) must lie "
                                         r"in \(0, 1\), got"):
-        stream.Regions("dtaci", alpha)
+        conformal.Regions("dtaci", alpha)
 
 
 def test_the_docs_say_that_gensafenavs_released_file_gives_other_radii():
@@ -543,28 +543,31 @@ def test_simultaneous_discs_hold_the_whole_horizon_at_the_target_within_acis_bou
 
 
 def test_simultaneous_discs_start_from_the_calibration_frames():
-    """The predictions completed during the calibration frames fix the scales (their mean
-    horizon-k errors, with a prior of one error of 0.1 k m) and fill ACI's window; the first
-    prediction after them gets that window's (1 - alpha) quantile times those scales, and
-    the predictions made during the calibration are not counted."""
-    horizon, calibrating = 2, 30
-    frames = calibrating + horizon + 1                    # one prediction made after them
-    rng = np.random.default_rng(1)
-    scores = rng.uniform(0.5, 1.5, (frames, 1, horizon)) * np.array([1.0, 3.0])
+    """A hand-worked case: one track, horizon 2, 6 calibration frames. The predictions made at
+    frames 0-3 are completed during them, with horizon-1 errors 0.3, 0.5, 0.7, 0.9 (sum 2.4)
+    and horizon-2 errors 1.8, 0.6, 1.0, 1.4 (sum 4.8): with the prior of one error of 0.1 k m
+    the scales are (2.4 + 0.1) / 5 = 0.5 and (4.8 + 0.2) / 5 = 1.0 m, and the scores
+    max_k e_k / scale_k are 1.8, 1.0, 1.4, 1.8. At alpha 0.5, ACI's window holds the four
+    (its radius the ceil(0.5 * 4) = 2nd smallest, 1.4), DtACI and PID start at their split
+    conformal radius (the ceil(5 * 0.5) = 3rd smallest, 1.8). The one prediction made after
+    the calibration (frame 6; those of frames 4 and 5 are not counted) gets radii q (0.5, 1.0)
+    m and is observed 0.6 and 1.5 m off: inside at step 1 for every method, inside at step 2
+    for DtACI and PID (1.5 <= 1.8) but not ACI (1.5 > 1.4)."""
+    horizon, calibrating, frames = 2, 6, 9
+    scores = np.full((frames, 1, horizon), 7.0)           # 7: errors of uncounted predictions
+    for made, errors in enumerate([(0.3, 1.8), (0.5, 0.6), (0.7, 1.0), (0.9, 1.4), (5.0, 5.0),
+                                   (5.0, 5.0), (0.6, 1.5)]):
+        for k, error in enumerate(errors):          # horizon k + 1 comes back k + 1 frames later
+            if made + k + 1 < frames:
+                scores[made + k + 1, 0, k] = error
     recording = coverage.Recording([(scores, np.ones(scores.shape, bool),
                                      np.zeros((frames, 1), bool))], frames, calibrating, 0.4, None)
-    joint = coverage.simultaneous(recording, "aci", 0.1)
-    steps = np.arange(horizon)
-
-    def errors(made):                        # the horizon-k errors of the prediction of frame t0
-        return scores[made + 1 + steps, 0, steps]
-
-    completed = np.stack([errors(t0) for t0 in range(calibrating - horizon)])      # t0 0..27
-    scale = (completed.sum(axis=0) + 0.1 * (steps + 1)) / (len(completed) + 1)
-    q = np.sort(np.max(completed / scale, axis=1))[int(np.ceil(0.9 * len(completed))) - 1]
-    assert joint["joint_predictions"] == 1                                         # t0 = 30
-    np.testing.assert_allclose(joint["radius"], q * scale, rtol=1e-6)
-    assert joint["joint_coverage"] == float(np.max(errors(calibrating) / scale) <= q)
+    for method, q in [("aci", 1.4), ("dtaci", 1.8), ("pid", 1.8)]:
+        joint = coverage.simultaneous(recording, method, 0.5)
+        assert joint["joint_predictions"] == 1, method                             # t0 = 6
+        np.testing.assert_allclose(joint["radius"], [0.5 * q, 1.0 * q], rtol=1e-6)
+        assert joint["coverage"] == [1.0, float(1.5 <= q)], method
+        assert joint["joint_coverage"] == float(1.5 <= q), method
 
 
 def test_a_streams_length_alone_spreads_its_coverage():
