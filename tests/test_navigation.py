@@ -27,6 +27,7 @@ from gst_jax.simulate.crowdnav.navigation import (described_run, episode_measure
                                                   per_episode, record_name, row_label,
                                                   run_episodes, same_episodes, summary)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
+from gst_jax.testing.drawn import gif_frames, pixels_near
 
 
 def _observation(humans, radii=0.0):
@@ -87,7 +88,10 @@ def test_the_command_reports_crowdnavs_measures(tmp_path, capsys):
     assert result["success"] + result["collision"] + result["timeout"] == 1.0
     record = tmp_path / "cv-mpc-dtaci-episodes2-seed1000.json"
     assert result == json.loads(record.read_text())
-    assert (tmp_path / "cv-mpc-dtaci-episodes2-seed1000-episode0.gif").stat().st_size > 1000
+    # Episode 0's GIF: a frame per step it lasted, the robot (red) leaving a trail.
+    frames = gif_frames(tmp_path / "cv-mpc-dtaci-episodes2-seed1000-episode0.gif")
+    assert len(frames) == round(result["per_episode"]["time_s"][0] / 0.25) + 1 > 2
+    assert pixels_near(frames[-1], "tab:red", 0.15) > pixels_near(frames[0], "tab:red", 0.15) > 20
     with pytest.raises(SystemExit) as refused:
         navigate.main([*argv, "--episodes", "2", "--alpha", "0.2"])
     assert str(refused.value) == (f"error: {record} exists: a run of the same 2 episodes; "

@@ -19,6 +19,8 @@ from gst_jax.rollout import rollout
 from gst_jax.runs import load_model
 from gst_jax.simulate.__main__ import main as simulate_main
 from gst_jax.simulate.paper import encounters, loop
+from gst_jax.testing.drawn import (bar_heights, bar_intervals, gif_frames, line_data,
+                                   pixels_near, saved_figures)
 
 
 @pytest.mark.parametrize("name", list(simulate.SCENARIOS))
@@ -78,16 +80,33 @@ def test_gst_drives_the_loop_without_nan():
 
 
 def test_command_runs_a_shipped_model_and_writes_measures_and_figures(tmp_path, capsys):
-    simulate_main(["pretrained:eth", "--scenario", "a", "--animate", "--workdir", str(tmp_path),
-                   "--json"])
+    """Per model, its measures, a figure of every agent's path from the scenario's start
+    (constant velocity's robot walks its straight line) and an animation of every step."""
+    with saved_figures() as saved:
+        simulate_main(["pretrained:eth", "--scenario", "a", "--animate", "--workdir",
+                       str(tmp_path), "--json"])
     rows = json.loads((tmp_path / "results.json").read_text())
     assert [row["model"] for row in rows] == ["constant velocity", "pretrained:eth n=1"]
     assert json.loads(capsys.readouterr().out) == rows
+    scenario = simulate.late_crossing()
+    straight = scenario.start[0] + (scenario.velocity[0] * scenario.grid.step_s
+                                    * np.arange(scenario.steps + 1)[:, None])
     for row in rows:
         assert row["scenario"] == "a_late_crossing" and row["min_distance_m"] > 0
-        assert Path(row["figure"]).stat().st_size > 5_000
+        # Each agent's whole path first (dotted), the robot's in red, then the robot's goal.
+        paths = saved[Path(row["figure"])].axes[0]
+        robot, human = line_data(paths, "tab:red")[0], line_data(paths, "tab:blue")[0]
+        for path, start in ((robot, scenario.start[0]), (human, scenario.start[1])):
+            assert path.shape == (scenario.steps + 1, 2) and np.isfinite(path).all()
+            np.testing.assert_allclose(path[0], start, atol=1e-5)
+        np.testing.assert_allclose(line_data(paths, "tab:red")[-1], [scenario.goal])
+        if row["model"] == "constant velocity":
+            np.testing.assert_allclose(robot, straight, atol=1e-4)
+        assert pixels_near(row["figure"], "tab:red") > 500      # legend and goal alone: 237
         with PIL.Image.open(row["animation"]) as gif:   # one frame per simulated step
-            assert (gif.format, gif.n_frames) == ("GIF", simulate.late_crossing().steps + 1)
+            assert (gif.format, gif.n_frames) == ("GIF", scenario.steps + 1)
+        frames = gif_frames(row["animation"])           # the robot's trail grows
+        assert pixels_near(frames[-1], "tab:red", 0.15) > pixels_near(frames[0], "tab:red", 0.15)
 
 
 def test_the_papers_scenarios_run_with_crowdnavs_reactive_orca_humans(capsys, tmp_path):
@@ -224,7 +243,8 @@ def test_the_members_of_an_earlier_record_keep_their_rates_and_pairs(tmp_path, m
     monkeypatch.setattr(encounters, "step_models", lambda runs: [(None, runs[0])])
     monkeypatch.setattr(encounters, "time_grid", lambda runs: None)
     monkeypatch.setattr(encounters, "run_encounter_study", simulated)
-    encounters.main(["--study", str(study), "--episodes", "4", "--workdir", str(out)])
+    with saved_figures() as saved:
+        encounters.main(["--study", str(study), "--episodes", "4", "--workdir", str(out)])
 
     record = json.loads((out / "encounters.json").read_text())
     assert record["members"] == ["n=F partial 1000", "n=F partial 1001", "n=4 partial 1000",
@@ -242,7 +262,14 @@ def test_the_members_of_an_earlier_record_keep_their_rates_and_pairs(tmp_path, m
         encounters.paired_difference(np.array([1, 1, 0, 0], bool), np.array([0, 0, 1, 1], bool)))
     assert "| n=16 partial 1000 | n=F partial 1000 | +0.000 [-0.980, +0.980] * |" in (
         out / "encounters.md").read_text()
-    assert (out / "encounters.png").stat().st_size > 5_000
+    # The figure: every model's rates, those kept and those simulated now (froze: red; none
+    # collided: blue bars of height 0).
+    rates = saved[out / "encounters.png"].axes[0]
+    assert [label.get_text() for label in rates.get_xticklabels()] == list(record["models"])
+    froze, collided = bar_heights(rates)
+    np.testing.assert_allclose(froze, [0.25, 0.5, 0.5, 0.25, 0.25, 0.5, 0.5])
+    np.testing.assert_allclose(collided, 0)
+    assert pixels_near(out / "encounters.png", "tab:red") > 1_000
 
 
 def test_a_models_stored_encounters_are_read_back_not_simulated_again(tmp_path):
@@ -266,8 +293,20 @@ def test_a_models_stored_encounters_are_read_back_not_simulated_again(tmp_path):
 
 
 def test_the_encounter_command_writes_rates_and_their_figure(tmp_path, capsys):
-    simulate_main(["--encounters", "12", "--workdir", str(tmp_path), "--json"])
+    """Constant velocity over 12 random encounters: it always arrives; the figure draws the
+    rates it printed (of 12 episodes) for freezing or turning back and for collisions, each
+    with its 95 % interval."""
+    with saved_figures() as saved:
+        simulate_main(["--encounters", "12", "--workdir", str(tmp_path), "--json"])
     rates = json.loads(capsys.readouterr().out)["constant velocity"]
     assert rates["episodes"] == 12 and rates["arrived"][0] == 1.0
     record = json.loads((tmp_path / "encounters.json").read_text())
-    assert record["episodes"] == 12 and (tmp_path / "encounters.png").stat().st_size > 5_000
+    assert record["episodes"] == 12
+    drawn = saved[tmp_path / "encounters.png"].axes[0]
+    assert [label.get_text() for label in drawn.get_xticklabels()] == ["constant velocity"]
+    for heights, interval, key in zip(bar_heights(drawn), bar_intervals(drawn),
+                                      ("freezing_or_u_turn", "collided")):
+        rate, low, high = rates[key]
+        assert 0 <= low <= rate <= high <= 1 and 12 * rate == pytest.approx(round(12 * rate))
+        np.testing.assert_allclose(heights, [rate])
+        np.testing.assert_allclose(interval, [[low, high]])

@@ -12,12 +12,14 @@ from pathlib import Path
 import _common
 import _study
 import encounters as encounters_script
+import numpy as np
 import pytest
 import sweep_all
 
 import gst_jax.evaluate
 import gst_jax.train
 from gst_jax.config import Member
+from gst_jax.testing.drawn import line_data, pixels_near, saved_figures
 
 ROOT = Path(__file__).parents[1]
 
@@ -105,13 +107,24 @@ def test_the_study_trains_its_missing_members_as_runs_and_publishes_their_record
     argv = ["--scenes", "eth", "--edge-heads", "0,4", "--seeds", "1", "--layout", "runs",
             "--workers", "2", "--encounters", str(tmp_path / "none.json"),
             "--workdir", str(workdir)]
-    sweep_all.main([*argv, "--publish"])
+    with saved_figures() as saved:
+        sweep_all.main([*argv, "--publish"])
     out = capsys.readouterr().out
     assert "failed, see their logs" in out and "n4-full-seed1000" in out
     study = (tmp_path / "results" / "study.md").read_text()
     assert "| 4 | partial | 1 | 1.100 ± 0.000 | 2.200 ± 0.000 |" in study
     assert "| 2 | eth n=4 partial | 1000 | AOE +0.100, FOE +0.200 m |" in study
-    assert (tmp_path / "results" / "study_fig4_errors_vs_n.png").stat().st_size > 10_000
+    # Fig. 4 draws the three members' errors against n (F, 4): partial detection at n = F
+    # and 4, fully detected at F only (its n = 4 failed), constant velocity dashed.
+    figure = tmp_path / "results" / "study_fig4_errors_vs_n.png"
+    for ax, scale, cv in zip(saved[figure].axes, (1, 2), (0.975, 2.124)):
+        [partial] = line_data(ax, "tab:blue")
+        np.testing.assert_allclose(partial, [[0, 1.0 * scale], [1, 1.1 * scale]])
+        [full] = line_data(ax, "tab:orange")
+        np.testing.assert_allclose(full, [[0, 1.3 * scale]])
+        [constant_velocity] = line_data(ax, "gray")
+        np.testing.assert_allclose(constant_velocity[:, 1], cv)
+    assert pixels_near(figure, "tab:blue") > 1_000          # 2,269 here; its legend alone 202
     records = sorted(p.name for p in (tmp_path / "results" / "runs").iterdir())
     assert records == [f"study-eth-{name}-seed1000-e200.json"
                        for name in ("n0-full", "n0-partial", "n4-partial")]

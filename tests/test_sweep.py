@@ -19,6 +19,8 @@ from gst_jax.model import Controls
 from gst_jax.progress import Progress
 from gst_jax.rollout import rollout
 from gst_jax.runs import load_member
+from gst_jax.testing.drawn import (bar_heights, colour_pixels, errorbar_data, line_data,
+                                   saved_figures)
 from gst_jax.training import members as sweep_members, sweep
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
@@ -58,8 +60,9 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
                         progress=_CrashAfterEpoch(3, io.StringIO()))
     assert [r["epoch"] for r in WorkDir(tmp_path).read_metrics()] == [1, 2, 3]
     log = io.StringIO()
-    results = sweep.fit_sweep(config, data_config, train_config, members, tmp_path,
-                              eval_samples=2, max_eval_windows=3, progress=Progress(log))
+    with saved_figures() as saved:
+        results = sweep.fit_sweep(config, data_config, train_config, members, tmp_path,
+                                  eval_samples=2, max_eval_windows=3, progress=Progress(log))
     # The resumed sweep writes every epoch once, and shows progress as training does.
     assert [r["epoch"] for r in WorkDir(tmp_path).read_metrics()] == [1, 2, 3, 4]
     # Resumed in the same process, the sweep compiles nothing again: its restored state is
@@ -121,7 +124,16 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
     assert json.loads((tmp_path / "results.json").read_text())["scene"] == "zara1"
     assert (tmp_path / "results.csv").read_text().startswith("edge_heads,detection")
     assert "| F (full connection) | partial | 1 |" in (tmp_path / "results.md").read_text()
-    assert (tmp_path / "aoe_foe_vs_n.png").stat().st_size > 10_000
+    # The figure draws each detection mode's AOE and FOE (± their spread over seeds).
+    cells = {row["detection"]: row for row in results["table"]}
+    for ax, metric in zip(saved[tmp_path / "aoe_foe_vs_n.png"].axes, ("aoe", "foe")):
+        drawn = errorbar_data(ax)
+        assert set(drawn) == {"partial detection", "full detection"}
+        for detection, cell in cells.items():
+            points, spread = drawn[f"{detection} detection"]
+            np.testing.assert_allclose(points[:, 1], [cell[metric]])
+            np.testing.assert_allclose(spread, [cell[f"{metric}_std"]])
+    assert colour_pixels(tmp_path / "aoe_foe_vs_n.png") > 500
 
     # A member read back as a single run (what `simulate SWEEP_DIR:MEMBER` uses).
     run = load_member(tmp_path, members[1].name)
@@ -168,10 +180,32 @@ def test_summary_quantities_and_cross_dataset_figures(tmp_path):
             in markdown)
     assert (sweep._in_words({"aoe_pct": -10.5, "foe_pct": 0.0})
             == "AOE 10.5 % worse, FOE 0.0 % better")
-    for draw, name in ((figures.errors_against_n_per_seed, "a.png"),
-                       (figures.sparse_gain_against_density, "b.png"),
-                       (figures.best_n_per_dataset, "c.png")):
-        assert draw(all_results, tmp_path / name).stat().st_size > 5_000
+    with saved_figures() as saved:
+        for draw, name in ((figures.errors_against_n_per_seed, "a.png"),
+                           (figures.sparse_gain_against_density, "b.png"),
+                           (figures.best_n_per_dataset, "c.png")):
+            assert colour_pixels(draw(all_results, tmp_path / name)) > 100
+    # Fig. 4, a row per scene: the mean over seeds per n (F, 1, 4) and detection mode, every
+    # seed a dot, constant velocity dashed.
+    for (aoe_ax, foe_ax), best in zip(np.reshape(saved[tmp_path / "a.png"].axes, (2, 2)),
+                                      (0.4, 0.2)):
+        for ax, scale in ((aoe_ax, 1), (foe_ax, 2)):
+            [partial] = line_data(ax, "tab:blue")
+            np.testing.assert_allclose(partial, [[0, 0.6 * scale], [1, 0.55 * scale],
+                                                 [2, best * scale]])
+            [full] = line_data(ax, "tab:orange")
+            np.testing.assert_allclose(full, [[2, 0.5 * scale]])
+            dots = np.concatenate([c.get_offsets() for c in ax.collections])
+            assert sorted(dots[:, 1] / scale) == pytest.approx(
+                sorted([0.5, 0.7, 0.55, 0.55, best, best, 0.5, 0.5]))
+            [cv] = line_data(ax, "gray")
+            np.testing.assert_allclose(cv[:, 1], scale * 1.0)
+    # The best n's gain over full connection against density; the best n per scene.
+    gains = saved[tmp_path / "b.png"].axes[0]
+    dots = np.concatenate([c.get_offsets() for c in gains.collections])
+    np.testing.assert_allclose(dots, [[r["density"], gain] for r, gain in zip(
+        all_results, (100 * (0.6 - 0.4) / 0.6, 100 * (0.6 - 0.2) / 0.6))])
+    assert [list(h) for h in bar_heights(saved[tmp_path / "c.png"].axes[0])] == [[4, 4]]
 
 
 def test_members_looped_in_one_program_step_as_the_vmapped_members():

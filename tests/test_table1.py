@@ -11,12 +11,14 @@ from pathlib import Path
 
 import _common
 import crowd
+import numpy as np
 import pytest
 import schedules
 import table1
 
 from gst_jax.io.checkpoints import Checkpointer
 from gst_jax.io.workdir import WorkDir
+from gst_jax.testing.drawn import bar_heights, colour_pixels, pixels_near, saved_figures
 
 ROOT = Path(__file__).parents[1]
 
@@ -99,15 +101,25 @@ def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
 
 def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_average_of_ours(
         tmp_path):
-    table1.main([*_isolated(tmp_path), "--protocol", "loo", "--runs", str(tmp_path / "runs"),
-                 "--workdir", str(tmp_path / "out")])
+    with saved_figures() as saved:
+        table1.main([*_isolated(tmp_path), "--protocol", "loo", "--runs",
+                     str(tmp_path / "runs"), "--workdir", str(tmp_path / "out")])
     rows = json.loads((tmp_path / "out" / "table1_loo.json").read_text())
     assert [r["scene"] for r in rows] == ["eth", "hotel", "univ", "zara1", "zara2"]
     assert all("aoe" not in r and r["cv_aoe"] > 0 and r["pedestrians"] > 0 for r in rows)
     table = (tmp_path / "out" / "table1_loo.md").read_text()
     assert "| AVG | - | - | | 0.48 | 1.02 |" in table and "No average of ours" in table
     assert "The paper did not report this protocol" in table
-    assert (tmp_path / "out" / "table1_loo.png").stat().st_size > 10_000      # the bar figure
+    # The bar figure: per scene, no bar of ours but "missing", the paper's and constant
+    # velocity's of the table.
+    figure = tmp_path / "out" / "table1_loo.png"
+    for ax, metric in zip(saved[figure].axes, ("aoe", "foe")):
+        ours, paper, cv = bar_heights(ax)
+        assert np.isnan(ours).all() and [t.get_text() for t in ax.texts] == ["missing"] * 5
+        np.testing.assert_allclose(paper, [r.get(f"paper_{metric}", np.nan) for r in rows])
+        np.testing.assert_allclose(cv, [r[f"cv_{metric}"] for r in rows])
+        assert (cv > 0).all()
+    assert pixels_near(figure, "tab:orange") > 1_000        # constant velocity's bars
 
 
 class _SittingEnds(BaseException):
@@ -224,7 +236,8 @@ def test_a_shorter_schedule_is_accepted_only_where_every_scene_holds_with_three_
 
     argv = ["--scenes", "eth", "hotel", "--runs", str(tmp_path / "runs"), "--workdir", str(out),
             "--reference", str(out / "table1.json")]
-    schedules.main([*argv, "--candidates", "compressed:50", "compressed:100"])
+    with saved_figures() as saved:
+        schedules.main([*argv, "--candidates", "compressed:50", "compressed:100"])
     record = json.loads((out / "schedules.json").read_text())
     assert record["verdicts"] == {"compressed:50": "rejected", "compressed:100": "open"}
     eth, hotel = record["rows"]["compressed:50"]
@@ -233,7 +246,13 @@ def test_a_shorter_schedule_is_accepted_only_where_every_scene_holds_with_three_
     assert not hotel["accepted"] and hotel["foe_change_pct"] == pytest.approx(4.0)
     table = (out / "schedules.md").read_text()
     assert "| hotel | compressed:100 | 1000 | 0.900 | 1.800 | -10.0 % / -10.0 % |" in table
-    assert (out / "schedules.png").stat().st_size > 10_000
+    # The figure: per scene and schedule, the change from 200 epochs (eth +2 % and -10 %,
+    # hotel +4 % and -10 %), AOE and FOE alike here.
+    for ax in saved[out / "schedules.png"].axes:
+        fifty, hundred = bar_heights(ax)
+        np.testing.assert_allclose(fifty, [2.0, 4.0])
+        np.testing.assert_allclose(hundred, [-10.0, -10.0])
+    assert colour_pixels(out / "schedules.png") > 1_000
 
     for seed in (1001, 1002):                          # hotel's other seeds arrive
         _fake_run(tmp_path / "runs", "hotel", seed, 0.95, [30.0], epochs=100,

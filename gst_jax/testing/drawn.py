@@ -4,6 +4,8 @@
                           saved to: their axes' lines, points, bars and images stay readable
     line_data(ax)         the (n, 2) data of each line an axes draws
     bar_heights(ax)       the heights of each group of bars an axes draws
+    bar_intervals(ax)     the (low, high) ends of the error bars of each group of bars
+    errorbar_data(ax)     the points and error half-widths of each labelled errorbar series
     colour_pixels(image)  how many pixels of a PNG (or an RGB array) are in colour
     pixels_near(image, colour)
                           how many are of one colour (a matplotlib colour name)
@@ -12,7 +14,8 @@
 The package draws data in colour and axes, ticks, text, grids and reference lines in black
 and grey, so a figure with empty axes has no pixel in colour at all: counting them tells a
 drawn figure from an empty one where the Figure itself cannot be had (a command run as a
-process).
+process). A legend's handles are in colour too, so a count is held to more than what the
+legend alone draws.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from typing import Iterator
 
 import numpy as np
 from matplotlib.colors import to_rgb
-from matplotlib.container import BarContainer
+from matplotlib.container import BarContainer, ErrorbarContainer
 from matplotlib.figure import Figure
 
 # A pixel is in colour where its channels differ by more than this (0-1): black, white and
@@ -64,6 +67,32 @@ def bar_heights(ax) -> list[np.ndarray]:
     """The heights of each group of bars `ax` draws (one `ax.bar` call each), in order."""
     return [np.array([bar.get_height() for bar in container], dtype=float)
             for container in ax.containers if isinstance(container, BarContainer)]
+
+
+def bar_intervals(ax) -> list[np.ndarray]:
+    """The (n, 2) low and high ends of the vertical error bars of each group of bars `ax`
+    draws (`ax.bar(..., yerr=...)`), in order; groups without error bars left out."""
+    intervals = []
+    for container in ax.containers:
+        if isinstance(container, BarContainer) and container.errorbar is not None:
+            _, _, (bars, *_) = container.errorbar.lines
+            intervals.append(np.array([sorted(np.asarray(segment, dtype=float)[:, 1])
+                                       for segment in bars.get_segments()]))
+    return intervals
+
+
+def errorbar_data(ax) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Each labelled `ax.errorbar` series of `ax`: its (n, 2) points and the half-heights
+    (n,) of its vertical error bars."""
+    series = {}
+    for container in ax.containers:
+        if isinstance(container, ErrorbarContainer):
+            line, _, (bars, *_) = container.lines
+            segments = [np.asarray(segment, dtype=float) for segment in bars.get_segments()]
+            series[container.get_label()] = (
+                np.asarray(line.get_xydata(), dtype=float),
+                np.array([abs(s[1, 1] - s[0, 1]) / 2 for s in segments]))
+    return series
 
 
 def _rgb(image) -> np.ndarray:
