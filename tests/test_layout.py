@@ -41,9 +41,11 @@ LAYERS = (
                     "gst_jax.testing."}),
     ("state", {"gst_jax.io.", "gst_jax.pretrained", "gst_jax.training",
                "gst_jax.training.state", "gst_jax.training.schedules",
-               "gst_jax.training.members", "gst_jax.training.step"}),
+               "gst_jax.training.members", "gst_jax.training.step",
+               "gst_jax.training.persistence"}),
     ("models by name", {"gst_jax.runs"}),
-    ("drivers", {"gst_jax.training.loop", "gst_jax.training.sweep", "gst_jax.run_figures",
+    ("drivers", {"gst_jax.training.loop", "gst_jax.training.selection",
+                 "gst_jax.training.sweep", "gst_jax.run_figures",
                  "gst_jax.simulate.paper.study", "gst_jax.pretrained.export"}),
     ("flags", {"gst_jax.cli"}),
 )

@@ -165,13 +165,13 @@ def test_a_fine_tuning_reports_the_starting_models_validation_aoe_beside_the_kep
     """What docs/own-data.md tells the user to compare: the kept epoch's validation AOE and
     the starting model's, kept with the selection across epochs (scores stand in for the
     evaluations: nothing compiles)."""
-    from gst_jax.training import loop
+    from gst_jax.training.selection import Selection
 
     data_config = DataConfig(scene="crowd_10hz", data=str(SAMPLE), fps=10, scale=0.01,
                              protocol="paper-val")
     train_config = dataclasses.replace(TINY, init="pretrained:hotel_d")
-    selection = loop._Selection(ModelConfig(), data_config, train_config, WorkDir(tmp_path),
-                                {"run": "stand-in"}, None)
+    selection = Selection(ModelConfig(), data_config, train_config, WorkDir(tmp_path),
+                          {"run": "stand-in"}, None)
     val_aoe = {"start": 0.162, "epoch 1": 0.170, "epoch 2": 0.149, "epoch 3": 0.155}
     scoring = iter(val_aoe.values())
     monkeypatch.setattr(selection, "_score", lambda params, window_set, key: {

@@ -211,7 +211,7 @@ class WorkDir:
         return Checkpointer(directory, create=create)
 
     def selected_checkpointer(self, *, create: bool = True) -> Checkpointer | None:
-        """The epoch a fine-tuning selected (`gst_jax.training.loop`); with `create=False`,
+        """The epoch a fine-tuning selected (`gst_jax.training.selection`); with `create=False`,
         None where there is none."""
         directory = self.path / "selected"
         if not create and not directory.is_dir():

@@ -7,6 +7,8 @@ epoch (rewritten from the checkpoint on resume, so a kill at any moment leaves o
 completed epoch), shows progress with an ETA, and applies the non-finite policy: a step whose
 loss, gradients or new state are not finite keeps the state it had (`make_train_step` does
 that); a single run then stops with `NonFiniteError`, a sweep counts it per member and goes on.
+The checkpoints, the metrics lines and the resume are `gst_jax.training.persistence`'s; a
+fine-tuning's choice of epoch on validation is `gst_jax.training.selection`'s.
 
 `python -m gst_jax.train` with no arguments trains the paper's configuration (GST (D), n = 1,
 ghost, seed 1000, 200 epochs, 16 scenes per step, Adam 1e-3 x 0.3 every 50 epochs, tau
@@ -18,12 +20,9 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import os
-import re
 import time
 import warnings
 from functools import partial
-from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -33,17 +32,18 @@ import numpy as np
 from gst_jax import data
 from gst_jax.compiles import count_compiles
 from gst_jax.config import DataConfig, ModelConfig, TimeGrid, TrainConfig
-from gst_jax.errors import DataError, Interrupted, NonFiniteError, RunError
+from gst_jax.errors import DataError, Interrupted, NonFiniteError
 from gst_jax.evaluation import evaluate_params
-from gst_jax.io.interrupts import set_forced_exit_note, stop_requested, stops_noted
+from gst_jax.io.interrupts import stop_requested, stops_noted
 from gst_jax.io.workdir import WorkDir, code_version, run_config, same_run
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.progress import Progress, StepClock
-from gst_jax.runs import Run, load_model
-from gst_jax.training.state import (HParams, TrainState, abstract_train_state, create_train_state,
-                                    hparams_for_epoch, make_optimizer, parameter_key, step_key,
-                                    validation_key)
+from gst_jax.runs import load_model
+from gst_jax.training.persistence import EpochSoFar, Saves, resume
+from gst_jax.training.selection import Selection, check_same_layout, fine_tuning_state
+from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
+                                    parameter_key, step_key, validation_key)
 from gst_jax.training.step import TrainStep, make_train_step
 
 
@@ -78,154 +78,6 @@ class Training:
         return {name: float(v) for name, v in zip(self.member_names, values)}
 
 
-@dataclasses.dataclass
-class _EpochSoFar:
-    """What an epoch has summed so far, saved with a checkpoint taken inside it."""
-
-    steps_done: int
-    loss_sum: np.ndarray                   # (members,) float64: loss x scenes
-    non_finite: np.ndarray                 # (members,) int
-    scenes: float = 0.0
-    seconds: float = 0.0                   # of training, also before a resume
-    compiles: int = 0
-    compile_seconds: float = 0.0
-
-    @classmethod
-    def fresh(cls, members: int) -> "_EpochSoFar":
-        return cls(0, np.zeros(members), np.zeros(members, int))
-
-    def to_json(self, epoch: int) -> dict:
-        return {"epoch": epoch, **dataclasses.asdict(self), "loss_sum": self.loss_sum.tolist(),
-                "non_finite": self.non_finite.tolist()}
-
-    @classmethod
-    def from_json(cls, record: dict) -> "_EpochSoFar":
-        fields = {k: v for k, v in record.items() if k != "epoch"}
-        return cls(**{**fields, "loss_sum": np.array(fields["loss_sum"], np.float64),
-                      "non_finite": np.array(fields["non_finite"], int)})
-
-
-class _Saves:
-    """Where a training's state is saved: a checkpoint every `checkpoint_every` epochs
-    (checkpoints/), and one inside an epoch when a stop signal comes (interrupted/, until a
-    later save). It keeps the note that a stop ending the process early leaves, and turns a
-    failed write (a full disk) into one line that says what the rerun will do."""
-
-    def __init__(self, workdir: WorkDir, config: dict):
-        self.workdir, self.config = workdir, config
-        self.epochs = workdir.checkpointer()
-        self.interrupted = workdir.interrupted_checkpointer()
-        self.saved: str | None = None       # e.g. "epoch 5", "epoch 3 at step 7"
-
-    def close(self) -> None:
-        self.epochs.close()
-        self.interrupted.close()
-
-    @property
-    def rerun(self) -> str:
-        if self.saved is None:
-            return f"rerunning the same command starts fresh in {self.workdir.path}"
-        return f"rerunning the same command continues from {self.saved}"
-
-    def noted(self, saved: str | None) -> None:
-        self.saved = saved
-        set_forced_exit_note(f"interrupted before the next save; {self.rerun}")
-
-    def save_epoch(self, epoch: int, state: TrainState, records: list) -> None:
-        self._write(lambda: self.epochs.save(epoch, state, self.config, records),
-                    f"the checkpoint of epoch {epoch}", self.epochs.directory)
-        if self.interrupted.latest_epoch is not None:
-            self.interrupted.discard()
-        self.noted(f"epoch {epoch}")
-
-    def save_inside(self, epoch: int, so_far: _EpochSoFar, state: TrainState,
-                    records: list) -> None:
-        """A checkpoint after `so_far.steps_done` steps of `epoch` (0: the epochs before it
-        complete)."""
-        def write():
-            self.interrupted.discard()
-            self.interrupted.save(epoch, state, self.config, records, so_far.to_json(epoch))
-        self._write(write, f"the checkpoint inside epoch {epoch}", self.interrupted.directory)
-        self.noted(f"epoch {epoch - 1}" if so_far.steps_done == 0
-                   else f"epoch {epoch} at step {so_far.steps_done}")
-
-    def append_metrics(self, record: dict) -> None:
-        self._write(lambda: self.workdir.append_metrics(record), "a line of metrics.jsonl",
-                    self.workdir.metrics_path)
-
-    def write_metrics(self, records: list) -> None:
-        self._write(lambda: self.workdir.write_metrics(records), "metrics.jsonl",
-                    self.workdir.metrics_path)
-
-    def _write(self, write: Callable[[], None], what: str, where: Path) -> None:
-        try:
-            write()
-        except Exception as error:
-            reason = _os_error_reason(error)
-            if reason is None:
-                raise
-            raise RunError(f"could not write {what} to {where} ({reason}); nothing "
-                           f"half-written is used: {self.rerun}") from None
-
-
-def _os_error_reason(error: BaseException) -> str | None:
-    """Why the system refused a write behind `error` ('No space left on device'), which orbax
-    and tensorstore wrap in other exceptions (tensorstore names only its errno), or None."""
-    seen = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, OSError):
-            return error.strerror or str(error)
-        if code := re.search(r"os_error_code='(\d+)'", str(error)):
-            return os.strerror(int(code.group(1)))
-        seen.add(id(error))
-        error = error.__cause__ or error.__context__
-    return None
-
-
-def _resume(training: Training, saves: _Saves, config: dict, epochs: int,
-            progress: Progress) -> tuple[TrainState, list, int, _EpochSoFar | None]:
-    """(state, records, epoch to start, what that epoch has done) from the newer of the
-    newest intact checkpoint and an interrupted epoch's; a fresh state where there is none."""
-    like = jax.eval_shape(training.init_state)
-    state, records, last_epoch, so_far = None, [], 0, None
-    if saves.epochs.latest_epoch is not None:
-        restored = saves.epochs.restore(like, fall_back=True)
-        _check_same_run(restored.config, config, saves.workdir)
-        state, records, last_epoch = restored.state, restored.records, restored.epoch
-        saves.epochs.discard_after(last_epoch)          # damaged ones that were skipped
-        saves.noted(f"epoch {last_epoch}")
-    if (saves.interrupted.latest_epoch or 0) > last_epoch:
-        try:
-            restored = saves.interrupted.restore(like)
-        except RunError as error:
-            warnings.warn(f"{error}; {saves.rerun}", stacklevel=2)
-        else:
-            _check_same_run(restored.config, config, saves.workdir)
-            state, records = restored.state, restored.records
-            last_epoch, so_far = restored.epoch - 1, _EpochSoFar.from_json(restored.progress)
-            saves.noted(f"epoch {restored.epoch} at step {so_far.steps_done}"
-                        if so_far.steps_done else f"epoch {last_epoch}")
-    elif saves.interrupted.latest_epoch is not None:  # older than a checkpoint saved since
-        saves.interrupted.discard()
-    if state is None:
-        progress.line(f"starting fresh: no checkpoint in {saves.workdir.path}")
-        saves.noted(None)
-        return training.init_state(), [], 1, None
-    inside = so_far is not None and so_far.steps_done > 0       # saved: "epoch 3 at step 7"
-    if last_epoch >= epochs and not inside:
-        progress.line(f"already finished: {saves.workdir.path} holds all {epochs} epochs")
-    else:
-        progress.line(f"resuming {saves.workdir.path} {'from' if inside else 'after'} "
-                      f"{saves.saved}")
-    return state, records, last_epoch + 1, so_far
-
-
-def _check_same_run(stored_config: dict, config: dict, workdir: WorkDir) -> None:
-    if not same_run(stored_config, config):
-        raise RunError(f"the checkpoints in {workdir.path} belong to a run with a different "
-                       "configuration; choose another --workdir or delete it")
-
-
 def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: data.WindowSet,
                  train_config: TrainConfig, *, stop_on_non_finite: bool,
                  after_epoch: Callable[[int, TrainState], dict] | None = None,
@@ -239,9 +91,9 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
     `Interrupted` says what a rerun continues from.
     """
     progress = progress or Progress()
-    with stops_noted(), contextlib.closing(_Saves(workdir, config)) as saves:
-        state, records, start_epoch, so_far = _resume(training, saves, config,
-                                                      train_config.epochs, progress)
+    with stops_noted(), contextlib.closing(Saves(workdir, config)) as saves:
+        state, records, start_epoch, so_far = resume(training.init_state, saves, config,
+                                                     train_config.epochs, progress)
         # One line per epoch up to the checkpoint, each saved with it: what a killed run wrote
         # after the checkpoint goes, what it did not get to write comes back.
         saves.write_metrics(records)
@@ -256,7 +108,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
 
         unsaved = False                 # steps taken since the last save (or the resume)
 
-        def stop_if_requested(epoch: int, epoch_so_far: _EpochSoFar) -> None:
+        def stop_if_requested(epoch: int, epoch_so_far: EpochSoFar) -> None:
             signal_name = stop_requested()
             if signal_name is None:
                 return
@@ -266,7 +118,7 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
 
         for epoch in range(start_epoch, train_config.epochs + 1):
             epoch_so_far = so_far if epoch == start_epoch and so_far else (
-                _EpochSoFar.fresh(members))
+                EpochSoFar.fresh(members))
             stop_if_requested(epoch, epoch_so_far)
             hparams = train_step.place(training.hparams(epoch))
             resumed_at = time.perf_counter() - epoch_so_far.seconds
@@ -363,7 +215,7 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
         devices: Devices | None = None) -> dict:
     """Train (or resume) one run in `workdir`; returns the summary also written there.
     devices: each step's scenes are split over them (`gst_jax.parallel`). A fine-tuning
-    (`train_config.init`) with a validation split selects its epoch there (`_Selection`) and
+    (`train_config.init`) with a validation split selects its epoch there (`Selection`) and
     reports the selected model beside the one it started from and constant velocity on the
     test windows."""
     workdir = workdir if isinstance(workdir, WorkDir) else WorkDir(workdir)
@@ -385,7 +237,7 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
     after_epoch = _validation(model_config, data_config, train_config, devices)
     selection = None
     if source is not None and data.has_validation(data_config):
-        selection = _Selection(model_config, data_config, train_config, workdir, config, devices)
+        selection = Selection(model_config, data_config, train_config, workdir, config, devices)
         after_epoch = selection.after_epoch
     elif source is not None:
         warnings.warn(f"protocol {data_config.protocol!r} has no validation split, so the "
@@ -415,109 +267,6 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
             summary["fine_tuning"] = selection.report(source, state, data_config)
         workdir.write_summary(summary)
     return summary
-
-
-# Samples per validation window when a fine-tuning selects its epoch: the paper's 20 runs.
-SELECTION_SAMPLES = 20
-
-
-class _Selection:
-    """A fine-tuning's model: the epoch, the starting model's 0 included, with the lowest
-    validation AOE, kept in <workdir>/selected/ (what `load_model` then reads) with its score
-    and the starting model's. Every epoch is scored with the same draws (one key), so that
-    epochs differ by their parameters only; the test split is never looked at to choose."""
-
-    def __init__(self, model_config: ModelConfig, data_config: DataConfig,
-                 train_config: TrainConfig, workdir: WorkDir, config: dict,
-                 devices: Devices | None):
-        self.model_config, self.train_config, self.devices = model_config, train_config, devices
-        self.workdir, self.config = workdir, config
-        self.val_set = data.load_split(data_config, "val", model_config.grid)
-        self.predict = make_predict(model_config, num_samples=SELECTION_SAMPLES, with_graph=False)
-
-    def _score(self, params, window_set: data.WindowSet, key: jax.Array) -> dict:
-        return evaluate_params(params, key, window_set, self.model_config,
-                               num_samples=SELECTION_SAMPLES, with_kde=False,
-                               fully_detected_only=self.train_config.fully_detected_only,
-                               predict=self.predict, devices=self.devices)
-
-    def _consider(self, epoch: int, state: TrainState) -> dict:
-        result = self._score(state.params, self.val_set, validation_key(self.train_config.seed, 0))
-        scored = {"epoch": epoch, "val_aoe": result["aoe"], "val_foe": result["foe"]}
-        best = self.best()
-        if best is None or scored["val_aoe"] < best["val_aoe"]:
-            # The starting model's score (None in a selection made before it was kept).
-            start = best.get("start") if best else {"val_aoe": scored["val_aoe"],
-                                                     "val_foe": scored["val_foe"]}
-            with contextlib.closing(self.workdir.selected_checkpointer()) as saved:
-                saved.discard()
-                saved.save(epoch, state, self.config, [], {**scored, "start": start})
-            best = scored
-        return {"val_aoe": scored["val_aoe"], "val_foe": scored["val_foe"],
-                "selected_epoch": best["epoch"]}
-
-    def best(self) -> dict | None:
-        """{"epoch", "val_aoe", "val_foe", "start"} of the model kept so far (start: the
-        starting model's {"val_aoe", "val_foe"}), or None."""
-        saved = self.workdir.selected_checkpointer(create=False)
-        if saved is None:
-            return None
-        with contextlib.closing(saved):
-            return saved.read_json("progress") if saved.latest_epoch is not None else None
-
-    def start(self, init_state: Callable[[], TrainState]) -> None:
-        """Score the starting model as epoch 0 (once; a resumed run has it)."""
-        if self.best() is None:
-            self._consider(0, init_state())
-
-    def after_epoch(self, epoch: int, state: TrainState) -> dict:
-        return self._consider(epoch, state)
-
-    def report(self, source: Run, state: TrainState, data_config: DataConfig) -> dict:
-        """The selection, and on the test windows (20 runs each, the same draws) the selected
-        model, the starting one and constant velocity."""
-        best = self.best()
-        with contextlib.closing(self.workdir.selected_checkpointer()) as saved:
-            selected = saved.restore(jax.eval_shape(lambda: state)).state
-        report = {"from": source.name, "selected_epoch": best["epoch"],
-                  "val_windows": len(self.val_set), "val_aoe": best["val_aoe"],
-                  "val_foe": best["val_foe"]}
-        if best.get("start"):
-            report.update(start_val_aoe=best["start"]["val_aoe"],
-                          start_val_foe=best["start"]["val_foe"])
-        test_set = data.load_split(data_config, "test", self.model_config.grid)
-        if not len(test_set):
-            return report
-        key = jax.random.key(0)
-        tuned = self._score(selected.params, test_set, key)
-        start = self._score(source.params, test_set, key)
-        report["test"] = {"windows": len(test_set),
-                          "tuned": {"aoe": tuned["aoe"], "foe": tuned["foe"]},
-                          "start": {"aoe": start["aoe"], "foe": start["foe"]},
-                          "constant_velocity": {"aoe": tuned["cv_aoe"], "foe": tuned["cv_foe"]}}
-        return report
-
-
-def fine_tuning_state(source: Run) -> TrainState:
-    """A fresh optimiser on a copy of the parameters of `source` (fine-tuning; the training
-    step donates its state, and `source` is scored beside the result)."""
-    params = jax.tree.map(jnp.array, source.params)
-    return TrainState(params=params, opt_state=make_optimizer().init(params), step=jnp.int32(0))
-
-
-def check_same_layout(model_config: ModelConfig, source: Run) -> None:
-    """Refuse to fine-tune `source` as `model_config` unless their parameters have the same
-    arrays (path and shape), as a resume would."""
-    expected = jax.tree_util.tree_flatten_with_path(abstract_train_state(model_config).params)[0]
-    given = jax.tree_util.tree_flatten_with_path(source.params)[0]
-    layout = {jax.tree_util.keystr(path): tuple(leaf.shape) for path, leaf in expected}
-    theirs = {jax.tree_util.keystr(path): tuple(leaf.shape) for path, leaf in given}
-    if layout != theirs:
-        different = sorted(k for k in layout.keys() | theirs.keys()
-                           if layout.get(k) != theirs.get(k))
-        raise RunError(f"{source.name} has another architecture than this run (e.g. "
-                       f"{different[0]}: {theirs.get(different[0])} against "
-                       f"{layout.get(different[0])}); fine-tune a model of the same shapes")
 
 
 def _validation(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
