@@ -9,7 +9,8 @@ On the AMD EPYC VM of 2026-12-03 it exited 139 every time with elementwise or re
 given to YNNPACK (gdb: `slinky::fuse_contiguous_dims` under `YnnFusionThunk`, on an XLA worker
 thread) and ran with `=dot` or `=`. On the VM of 2026-12-04 (family 25 model 17) it runs with
 every setting (docs/benchmarks.md, "Conditions"). Setting the YNNPACK flag yourself keeps
-gst_jax from adding `=dot` (gst_jax/__init__.py). Prints the members' AOE; exit 0 = no crash.
+gst_jax.parallel from adding `=dot` (gst_jax/host_devices.py). Prints the members' AOE; exit
+0 = no crash.
 """
 
 import sys

@@ -16,29 +16,7 @@ The layers, bottom up: `data` (numpy), `graph` and `gumbel`, `model`, `rollout`,
 """
 
 import importlib
-import os
-import re
 import sys
-
-# XLA:CPU in jaxlib 0.10 hands elementwise and reduction fusions to YNNPACK on some CPUs (AMD
-# EPYC), and one of them segfaulted in its transpose, seen only in a process that forces
-# several host devices (a sweep over 4 in tests/test_parallel.py; docs/benchmarks.md,
-# "Conditions"). Such a process keeps YNNPACK to its matrix products; every other keeps all of
-# its fusions, which the planner path needs (the CrowdNav++ drop-in ran 2x slower without).
-# XLA reads the flag when jax starts its CPU backend, so it is set before any of our modules
-# computes; a user's own setting of the flag wins.
-_YNNPACK_FLAG = "--xla_cpu_experimental_ynn_fusion_type"
-
-
-def _forced_host_devices(xla_flags: str) -> int:
-    """The host device count that XLA_FLAGS forces (1 where it forces none)."""
-    counts = re.findall(r"--xla_force_host_platform_device_count=(\d+)", xla_flags)
-    return int(counts[-1]) if counts else 1
-
-
-if (_YNNPACK_FLAG not in os.environ.get("XLA_FLAGS", "")
-        and _forced_host_devices(os.environ.get("XLA_FLAGS", "")) > 1):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_YNNPACK_FLAG}=dot".strip()
 
 # Each public name and the module that defines it; a module is imported when its name is
 # first used, so that `import gst_jax.data` (numpy only) or a command that prints statistics

@@ -20,6 +20,7 @@ from gst_jax.data import data_name
 from gst_jax.data.protocols import bundled_or_local
 from gst_jax.data.readers import UNITS, parse_columns
 from gst_jax.errors import USER_ERRORS, DataError, Interrupted
+from gst_jax.host_devices import keep_ynnpack_to_matrix_products
 from gst_jax.io.interrupts import stops_end_the_process
 from gst_jax.private_folders import private_folder
 
@@ -135,7 +136,9 @@ STOP_GRACE_S = 4.0
 def run(command: Callable[[argparse.Namespace], None], parser: argparse.ArgumentParser,
         argv: list[str] | None) -> None:
     """Parse `argv` and run `command`; a user error ends the process with one line, a stop
-    signal (Ctrl-C, SIGTERM) with one line and status 130."""
+    signal (Ctrl-C, SIGTERM) with one line and status 130. A process that forces several host
+    devices keeps XLA's YNNPACK to its matrix products (`gst_jax.host_devices`)."""
+    keep_ynnpack_to_matrix_products()
     args = parser.parse_args(argv)
     warnings.formatwarning = lambda message, *_, **__: f"warning: {message}\n"
     try:

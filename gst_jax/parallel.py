@@ -22,8 +22,14 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from gst_jax.errors import DeviceError
+from gst_jax.host_devices import keep_ynnpack_to_matrix_products
 
 DATA = "data"
+
+# A process that forces several host devices keeps XLA's YNNPACK to its matrix products
+# (`gst_jax.host_devices`: one of its other fusions segfaulted there). Set on import, before
+# anything computes on the devices this module spreads work over.
+keep_ynnpack_to_matrix_products()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -178,13 +178,14 @@ def test_two_processes_joined_by_jax_distributed_train_as_one(tmp_path):
 
 
 # Elementwise and reduction ops that jaxlib 0.10's XLA:CPU gives YNNPACK on an AMD EPYC: one
-# such fusion segfaulted the 4-device sweep above (gst_jax/__init__.py). On a CPU that gives
-# YNNPACK none of them the probe counts 0 either way.
+# such fusion segfaulted the 4-device sweep above (gst_jax/host_devices.py). On a CPU that
+# gives YNNPACK none of them the probe counts 0 either way. argv: the module to import after
+# jax ("jax alone": none).
 YNNPACK_PROBE = textwrap.dedent("""
-    import os, sys
+    import importlib, os, sys
     import jax, jax.numpy as jnp
-    if sys.argv[1] == "gst_jax":
-        import gst_jax  # noqa: F401
+    if sys.argv[1] != "jax alone":
+        importlib.import_module(sys.argv[1])
     def softmax_total(a, b, scale):
         x = (a + b) * scale
         return jnp.exp(x - x.max(-1, keepdims=True)).sum(-1)
@@ -203,18 +204,50 @@ def _ynnpack_fusions(*, importing: str, xla_flags: str) -> tuple[int, str]:
     return int(output[0]), output[1]
 
 
-def test_importing_gst_jax_keeps_ynnpack_to_matrix_products_where_host_devices_are_forced():
-    # XLA_FLAGS as the tests have it, less the YNNPACK setting and the device count.
-    flags = " ".join(flag for flag in os.environ.get("XLA_FLAGS", "").split()
-                     if "ynn_fusion_type" not in flag and "device_count" not in flag)
-    everything, _ = _ynnpack_fusions(importing="jax alone", xla_flags=flags)
-    # One device: gst_jax leaves XLA's fusions alone.
-    assert _ynnpack_fusions(importing="gst_jax", xla_flags=flags) == (everything, flags)
+# XLA_FLAGS as the tests have them, less the YNNPACK setting and the device count.
+FLAGS = " ".join(flag for flag in os.environ.get("XLA_FLAGS", "").split()
+                 if "ynn_fusion_type" not in flag and "device_count" not in flag)
+FOUR = f"{FLAGS} --xla_force_host_platform_device_count=4"
+USERS = f"{FOUR} --xla_cpu_experimental_ynn_fusion_type=eltwise,reduce"
+
+
+def test_the_devices_module_keeps_ynnpack_to_matrix_products_where_host_devices_are_forced():
+    """`gst_jax.parallel`, which every module that trains or evaluates imports (evaluation
+    here), sets the flag on import, before anything computes."""
+    everything, _ = _ynnpack_fusions(importing="jax alone", xla_flags=FLAGS)
+    # One device: XLA's fusions are left alone.
+    assert _ynnpack_fusions(importing="gst_jax.parallel", xla_flags=FLAGS) == (everything, FLAGS)
     # Four forced host devices (where the segfault was seen): matrix products only.
-    four = f"{flags} --xla_force_host_platform_device_count=4"
-    fusions, set_flags = _ynnpack_fusions(importing="gst_jax", xla_flags=four)
-    assert fusions == 0 and set_flags == f"{four} --xla_cpu_experimental_ynn_fusion_type=dot"
+    for module in ("gst_jax.parallel", "gst_jax.evaluation"):
+        fusions, set_flags = _ynnpack_fusions(importing=module, xla_flags=FOUR)
+        assert fusions == 0, module
+        assert set_flags == f"{FOUR} --xla_cpu_experimental_ynn_fusion_type=dot", module
     # A user's own setting wins.
-    users = f"{four} --xla_cpu_experimental_ynn_fusion_type=eltwise,reduce"
-    assert _ynnpack_fusions(importing="gst_jax", xla_flags=users) == (
-        _ynnpack_fusions(importing="jax alone", xla_flags=users)[0], users)
+    assert _ynnpack_fusions(importing="gst_jax.parallel", xla_flags=USERS) == (
+        _ynnpack_fusions(importing="jax alone", xla_flags=USERS)[0], USERS)
+
+
+def test_a_command_keeps_ynnpack_to_matrix_products_where_host_devices_are_forced(
+        monkeypatch):
+    """`gst_jax.cli.run`, which every command's main calls before it computes, sets it too:
+    also the commands that never import gst_jax.parallel (navigate, simulate, plot)."""
+    from gst_jax import cli
+
+    seen = []
+    for xla_flags in (FLAGS, FOUR, USERS):
+        monkeypatch.setenv("XLA_FLAGS", xla_flags)
+        cli.run(lambda args: seen.append(os.environ["XLA_FLAGS"]),
+                cli.parser("gst_jax.probe", "A probe."), [])
+    assert seen == [FLAGS, f"{FOUR} --xla_cpu_experimental_ynn_fusion_type=dot", USERS]
+
+
+def test_importing_gst_jax_changes_no_environment_variable():
+    """`import gst_jax`, and its public names bound on first use, leave os.environ as it was,
+    also in a process that forces host devices (the YNNPACK setting is gst_jax.parallel's and
+    the commands')."""
+    code = ("import os; before = dict(os.environ); import gst_jax; gst_jax.ModelConfig; "
+            "gst_jax.make_predict; print(before == dict(os.environ))")
+    for xla_flags in (FLAGS, FOUR):
+        output = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                env={**os.environ, "XLA_FLAGS": xla_flags}, check=True).stdout
+        assert output.split() == ["True"], xla_flags
