@@ -1,6 +1,9 @@
 """What every command shares: the flags (`--scene`, `--protocol`, `--edge-heads`, `--epochs`,
 `--seed`, `--workdir`, `--json`, ...), so that each means the same thing everywhere; their
-typed configs; and `run`, which turns the library's errors into one-line messages."""
+typed configs; and `run`, which turns the library's errors into one-line messages.
+
+One job, though over 400 lines: the shared flags, each with its parser, its help and the config
+field it becomes, in one place, so that a flag means one thing in every command."""
 
 from __future__ import annotations
 

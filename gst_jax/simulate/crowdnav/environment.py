@@ -54,6 +54,10 @@ buffer); the prediction penalty of an episode's last step is computed on that ep
 (CrowdNav++ computes it on the next episode's first observation); each human's ORCA sees
 every other human's current radius (CrowdNav++'s reused simulators keep a replaced human's
 old one).
+
+One job, though over 400 lines: CrowdNav++'s task, its rules (spawning, goals, detection,
+reward) beside the environment that applies them in CrowdNav++'s order, so that they read
+against CrowdNav++'s `crowd_sim` files together.
 """
 
 from __future__ import annotations
