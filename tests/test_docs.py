@@ -23,6 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from gst_jax.testing.drawn import pixels_near
+
 ROOT = Path(__file__).parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 EXCERPT = "<!-- excerpt -->"
@@ -167,7 +169,12 @@ def test_the_quick_start_prints_the_table_the_readme_shows(ran):
     shown = re.search(r"```\n(model .*?)```", readme, re.S).group(1).splitlines()
     assert [line.split() for line in shown] == [line.split() for line in result.stdout.splitlines()
                                                 if line.startswith(("model", "GST ", "constant"))]
-    assert (folder / "zara1.png").stat().st_size > 10_000
+    # The figure draws the window: observed (blue) and true (green) paths, predictions (red
+    # where fully detected, orange where not), each far beyond its legend's 96 pixels.
+    drawn = {colour: pixels_near(folder / "zara1.png", colour)
+             for colour in ("tab:blue", "tab:green", "tab:red", "tab:orange")}
+    assert drawn["tab:blue"] > 500 and drawn["tab:green"] > 500, drawn
+    assert drawn["tab:red"] + drawn["tab:orange"] > 500, drawn
 
 
 def test_the_api_reference_builds_from_the_docstrings_without_a_warning(tmp_path):

@@ -19,6 +19,7 @@ from gst_jax.errors import DataError, RunError
 from gst_jax.evaluation import evaluate_run
 from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_model, load_run
+from gst_jax.testing.drawn import pixels_near
 from gst_jax.train import format_fine_tuning
 from gst_jax.training.loop import fit
 from gst_jax.training.state import TrainState, hparams_for_epoch, step_key
@@ -99,7 +100,12 @@ def test_a_shipped_model_evaluates_and_plots_own_data_from_any_folder(tmp_path):
                       "--fps", "10", "--units", "cm", "--samples", "2", "--out", str(figure),
                       cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    assert figure.stat().st_size > 10_000
+    # Drawn: observed (blue) and true (green) paths and predictions (red where fully
+    # detected, orange where not), each far beyond its legend's 96 pixels.
+    drawn = {colour: pixels_near(figure, colour)
+             for colour in ("tab:blue", "tab:green", "tab:red", "tab:orange")}
+    assert drawn["tab:blue"] > 500 and drawn["tab:green"] > 500, drawn
+    assert drawn["tab:red"] + drawn["tab:orange"] > 500, drawn
 
 
 def test_fine_tuning_starts_from_the_given_parameters(tmp_path, at_model_rate):
