@@ -1,7 +1,8 @@
 """The documentation runs as written: every ```python and ```bash block of README.md and
-docs/*.md runs here, from a folder of its own, unless the line `<!-- excerpt -->` comes before
-it (a long training, a cluster, a checkpoint the reader must bring); excerpts still parse. Also:
-the README's quick start prints the table it shows, and an API reference builds from the
+docs/*.md runs here, from a folder of its own, unless the line `<!-- excerpt: REASON -->` comes
+before it, saying why it does not run here (a long training, a cluster, a checkpoint the reader
+must bring); excerpts still parse, and every one gives its reason. Also: the README's quick
+start prints the table it shows and draws its figure, and an API reference builds from the
 docstrings.
 
 A block runs with the interpreter of the test session (as `python3` and `python` for bash
@@ -27,7 +28,9 @@ from gst_jax.testing.drawn import pixels_near
 
 ROOT = Path(__file__).parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-EXCERPT = "<!-- excerpt -->"
+# A block that does not run here, and why: `<!-- excerpt: trains for 20 minutes -->`.
+EXCERPT = re.compile(r"<!-- excerpt: (\S.*?) -->")
+EXCERPT_FORM = "<!-- excerpt: why it does not run here -->"
 LANGUAGES = {"python": "python", "bash": "bash", "sh": "bash", "shell": "bash"}
 LINKED = ("data", "experiments", "benchmarks")       # what blocks read from the checkout
 TIMEOUT_S = 300
@@ -42,7 +45,7 @@ class Block:
     line: int          # of the opening fence
     language: str      # "python", "bash" or "" (untagged)
     code: str
-    excerpt: bool
+    excerpt: str       # why it does not run here; "" for a block that runs
 
     @property
     def where(self) -> str:
@@ -51,8 +54,8 @@ class Block:
 
 
 def blocks(path: Path) -> list[Block]:
-    """The fenced blocks of a markdown page, each with whether `<!-- excerpt -->` (blank lines
-    allowed between) comes before its opening fence."""
+    """The fenced blocks of a markdown page, each with the reason of the `<!-- excerpt: ... -->`
+    line that comes before its opening fence (blank lines allowed between), if one does."""
     found, lines = [], path.read_text().splitlines()
     k = 0
     while k < len(lines):
@@ -65,8 +68,9 @@ def blocks(path: Path) -> list[Block]:
         before = next((lines[j].strip() for j in range(k - 1, -1, -1) if lines[j].strip()), "")
         code = "\n".join(line[len(indent):] if line.startswith(indent) else line
                          for line in lines[k + 1:end]) + "\n"
+        marker = EXCERPT.fullmatch(before)
         found.append(Block(path.relative_to(ROOT).as_posix(), k + 1, language.lower(), code,
-                           before == EXCERPT))
+                           marker.group(1) if marker else ""))
         k = end + 1
     return found
 
@@ -136,10 +140,11 @@ def test_every_code_block_of_the_docs_runs_or_is_marked_an_excerpt(block, ran):
         result, _ = ran(block)
     except subprocess.TimeoutExpired:
         pytest.fail(f"{block.where}: the ```{block.language} block ran past {TIMEOUT_S} s; "
-                    f"make it smaller or mark it {EXCERPT}")
+                    f"make it smaller or mark it {EXCERPT_FORM}")
     assert result.returncode == 0, (
         f"{block.where}: the ```{block.language} block fails (exit {result.returncode}); fix it "
-        f"or mark it {EXCERPT} (a long training, a cluster, files the reader must bring):\n"
+        f"or mark it {EXCERPT_FORM} (a long training, a cluster, files the reader must "
+        f"bring):\n"
         f"{result.stderr[-3000:]}")
     for line in block.code.splitlines():
         if expected := PRINTS.search(line):
@@ -155,9 +160,21 @@ def test_the_docs_show_commands_only_in_blocks_that_run_or_are_excerpts():
     assert not untagged, f"tag these ```bash (or ```python): {untagged}"
     for page in DOCS:
         lines = page.read_text().splitlines()
-        markers = sum(line.strip() == EXCERPT for line in lines)
-        marked = sum(block.excerpt for block in blocks(page))
-        assert markers == marked, f"{page.name}: an {EXCERPT} marker not before a block"
+        markers = sum(bool(EXCERPT.fullmatch(line.strip())) for line in lines)
+        marked = sum(bool(block.excerpt) for block in blocks(page))
+        assert markers == marked, f"{page.name}: an excerpt marker not before a block"
+
+
+def test_every_excerpt_says_why_it_does_not_run():
+    """A block left out of the run says why, in its marker: `<!-- excerpt -->` alone, or a
+    marker the test would not read, is refused."""
+    unexplained = [f"{page.relative_to(ROOT)}:{number}" for page in DOCS
+                   for number, line in enumerate(page.read_text().splitlines(), 1)
+                   if "<!-- excerpt" in line and not EXCERPT.fullmatch(line.strip())]
+    assert not unexplained, f"give these their reason, as {EXCERPT_FORM}: {unexplained}"
+    reasons = [block.excerpt for block in ALL if block.excerpt]
+    assert reasons and all(len(reason.split()) >= 3 for reason in reasons), reasons
+    assert not [reason for reason in reasons if "--" in reason], "an HTML comment holds no --"
 
 
 def test_the_quick_start_prints_the_table_the_readme_shows(ran):
