@@ -6,20 +6,21 @@ predictor is wrong before anything else does. Each method here learns a correcti
 predicted displacements from them, pooled over everyone in view, and applies it to the next
 predictions:
 
-- `speed_scale`: the crowd's speed relative to the predictor's, one number (physical: a
+- `SpeedScale`: the crowd's speed relative to the predictor's, one number (physical: a
   crowd 1.5x faster walks 1.5x as far along the predicted paths): the displacement
   predicted from a person's position now, times s. s is the forgetting least-squares fit of
   observed against predicted displacements, bounded, starting at 1.
-- `rls_blend`: per horizon step k, the predicted displacement d_k and constant velocity's
+- `RLSBlend`: per horizon step k, the predicted displacement d_k and constant velocity's
   k v (v the last observed step) weighed, a_k d_k + b_k k v, by recursive least squares with
   forgetting (a Bayesian linear last layer on the predictor's output; its prior is the
   predictor itself, a = 1, b = 0): it can learn to trust the model less, or more, and to
   move faster, per horizon.
 
-Like `gst_jax.conformal`'s methods, each is a pair of pure functions with its state a pytree
-of arrays, for N person slots and horizon P (jit, vmap over environments, scan over time):
+Like `gst_jax.conformal`'s methods, each is a frozen dataclass of pure methods with its state
+a pytree of arrays, for N person slots and horizon P (jit, vmap over environments, scan over
+time):
 
-    method = adaptation.speed_scale()
+    method = adaptation.SpeedScale()
     state = method.init(num_slots=N, horizon=P)
     # per step: what was observed now, then the new predictions
     state = method.observe(state, positions, detected)         # (N, 2), (N,)
@@ -34,7 +35,8 @@ raw predictions (before adaptation: the correction is of the predictor, not of i
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+import dataclasses
+from typing import NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -58,14 +60,38 @@ class AdaptationState(NamedTuple):
     stats: tuple
 
 
-class Adaptation(NamedTuple):
-    """An online correction (module docstring): init, observe, apply, issue, reset_slots."""
+class Adaptation(Protocol):
+    """An online correction (module docstring): a frozen dataclass (hashable, so that it is
+    a static argument of the programs that use it) with these pure methods."""
 
-    init: Callable[..., AdaptationState]
-    observe: Callable[..., AdaptationState]
-    apply: Callable[..., jax.Array]
-    issue: Callable[..., AdaptationState]
-    reset_slots: Callable[..., AdaptationState]
+    def init(self, num_slots: int, horizon: int) -> AdaptationState: ...
+
+    def observe(self, state: AdaptationState, positions: jax.Array, detected: jax.Array
+                ) -> AdaptationState: ...
+
+    def apply(self, state: AdaptationState, positions: jax.Array, predicted: jax.Array,
+              last_step: jax.Array) -> jax.Array: ...
+
+
+class _Issues:
+    """What every method shares: keeping the raw predictions, forgetting slots."""
+
+    def issue(self, state: AdaptationState, positions: jax.Array, predicted: jax.Array,
+              last_step: jax.Array, valid: jax.Array) -> AdaptationState:
+        """Keep this step's raw predictions (N, P, 2) of the slots `valid` (N,), made from
+        `positions` (N, 2) with last observed steps `last_step` (N, 2)."""
+        horizon = predicted.shape[1]
+        steps = jnp.arange(1, horizon + 1)[None, :, None]
+        new = Issued(predicted - positions[:, None], steps * last_step[:, None], positions,
+                     valid)
+        issued = jax.tree.map(lambda ring, one: jnp.concatenate([ring[1:], one[None]]),
+                              state.issued, new)
+        return state._replace(issued=issued)
+
+    def reset_slots(self, state: AdaptationState, which: jax.Array) -> AdaptationState:
+        """Forget the issued predictions of the slots `which` (N,): someone else is there."""
+        return state._replace(issued=state.issued._replace(
+            valid=state.issued.valid & ~which[None]))
 
 
 def _matured(issued: Issued, positions: jax.Array, detected: jax.Array):
@@ -82,97 +108,89 @@ def _matured(issued: Issued, positions: jax.Array, detected: jax.Array):
     return predicted, constant_velocity, observed, mask
 
 
-def _issue(state: AdaptationState, positions: jax.Array, predicted: jax.Array,
-           last_step: jax.Array, valid: jax.Array) -> AdaptationState:
-    horizon = predicted.shape[1]
-    steps = jnp.arange(1, horizon + 1)[None, :, None]
-    new = Issued(predicted - positions[:, None], steps * last_step[:, None], positions, valid)
-    issued = jax.tree.map(lambda ring, one: jnp.concatenate([ring[1:], one[None]]),
-                          state.issued, new)
-    return state._replace(issued=issued)
-
-
-def _reset_slots(state: AdaptationState, which: jax.Array) -> AdaptationState:
-    return state._replace(issued=state.issued._replace(
-        valid=state.issued.valid & ~which[None]))
-
-
 def _empty(num_slots: int, horizon: int) -> Issued:
     zeros = jnp.zeros((horizon, num_slots, horizon, 2))
     return Issued(zeros, zeros, jnp.zeros((horizon, num_slots, 2)),
                   jnp.zeros((horizon, num_slots), bool))
 
 
-def speed_scale(forgetting: float = 0.8, prior_weight: float = 1.0,
-                bounds: tuple[float, float] = (0.5, 2.0)) -> Adaptation:
+@dataclasses.dataclass(frozen=True)
+class SpeedScale(_Issues):
     """The crowd's speed relative to the predictor's, s: every predicted displacement times
     s. s = (w + sum l^age o.d) / (w + sum l^age |d|^2) over matured predictions d and their
-    observed displacements o (l: `forgetting` per step; w: `prior_weight`, in m^2, holding s
-    at 1 until enough is seen), clipped to `bounds`."""
+    observed displacements o (l: `forgetting` per step, 0.8: a memory of about 5 steps; w:
+    `prior_weight`, in m^2, holding s at 1 until enough is seen), clipped to `bounds`."""
 
-    def init(num_slots: int, horizon: int) -> AdaptationState:
-        return AdaptationState(_empty(num_slots, horizon),
-                               (jnp.asarray(prior_weight), jnp.asarray(prior_weight)))
+    forgetting: float = 0.8
+    prior_weight: float = 1.0
+    bounds: tuple[float, float] = (0.5, 2.0)
 
-    def observe(state, positions, detected):
+    def init(self, num_slots: int, horizon: int) -> AdaptationState:
+        w = jnp.asarray(self.prior_weight, jnp.float32)
+        return AdaptationState(_empty(num_slots, horizon), (w, w))
+
+    def observe(self, state, positions, detected):
         predicted, _, observed, mask = _matured(state.issued, positions, detected)
         numerator, denominator = state.stats
-        weight = mask[..., None]
-        numerator = (forgetting * (numerator - prior_weight) + prior_weight
-                     + jnp.sum(weight * observed * predicted))
-        denominator = (forgetting * (denominator - prior_weight) + prior_weight
-                       + jnp.sum(weight * predicted ** 2))
+        weight, w, keep = mask[..., None], self.prior_weight, self.forgetting
+        numerator = keep * (numerator - w) + w + jnp.sum(weight * observed * predicted)
+        denominator = keep * (denominator - w) + w + jnp.sum(weight * predicted ** 2)
         return state._replace(stats=(numerator, denominator))
 
-    def scale(state):
+    def scale(self, state: AdaptationState) -> jax.Array:
         numerator, denominator = state.stats
-        return jnp.clip(numerator / denominator, *bounds)
+        return jnp.clip(numerator / denominator, *self.bounds)
 
-    def apply(state, positions, predicted, last_step):
-        del last_step
-        return positions[:, None] + scale(state) * (predicted - positions[:, None])
-
-    return Adaptation(init, observe, apply, _issue, _reset_slots)
+    def apply(self, state, positions, predicted, last_step):
+        return positions[:, None] + self.scale(state) * (predicted - positions[:, None])
 
 
-def rls_blend(forgetting: float = 0.9, prior_weight: float = 1.0) -> Adaptation:
+@dataclasses.dataclass(frozen=True)
+class RLSBlend(_Issues):
     """Per horizon step k, a_k d_k + b_k k v (d_k the predicted displacement, v the last
     observed step): (a_k, b_k) by recursive least squares with forgetting `forgetting` per
     step, both components of every matured prediction an equation, the prior (1, 0) held with
     `prior_weight` (m^2): the information R_k (2, 2) and r_k (2,) decay towards the prior's."""
 
-    def init(num_slots: int, horizon: int) -> AdaptationState:
-        information = prior_weight * jnp.broadcast_to(jnp.eye(2), (horizon, 2, 2))
-        target = prior_weight * jnp.broadcast_to(jnp.array([1.0, 0.0]), (horizon, 2))
-        return AdaptationState(_empty(num_slots, horizon), (information, target))
+    forgetting: float = 0.9
+    prior_weight: float = 1.0
 
-    def observe(state, positions, detected):
+    def _prior(self):
+        return (self.prior_weight * jnp.eye(2, dtype=jnp.float32),
+                self.prior_weight * jnp.array([1.0, 0.0], jnp.float32))
+
+    def init(self, num_slots: int, horizon: int) -> AdaptationState:
+        information, target = self._prior()
+        return AdaptationState(_empty(num_slots, horizon),
+                               (jnp.broadcast_to(information, (horizon, 2, 2)),
+                                jnp.broadcast_to(target, (horizon, 2))))
+
+    def observe(self, state, positions, detected):
         predicted, constant_velocity, observed, mask = _matured(state.issued, positions,
                                                                 detected)
         features = jnp.stack([predicted, constant_velocity], axis=-1)     # (P, N, 2, 2)
         features = features * mask[..., None, None]
         information, target = state.stats
-        prior_information = prior_weight * jnp.eye(2)
-        prior_target = prior_weight * jnp.array([1.0, 0.0])
-        information = (forgetting * (information - prior_information) + prior_information
+        prior_information, prior_target = self._prior()
+        keep = self.forgetting
+        information = (keep * (information - prior_information) + prior_information
                        + jnp.einsum("pncf,pncg->pfg", features, features))
-        target = (forgetting * (target - prior_target) + prior_target
+        target = (keep * (target - prior_target) + prior_target
                   + jnp.einsum("pncf,pnc->pf", features, observed))
         return state._replace(stats=(information, target))
 
-    def weights(state):
+    def weights(self, state: AdaptationState) -> jax.Array:
+        """(P, 2): each horizon's weight of the model's displacement and of CV's."""
         information, target = state.stats
-        return jnp.linalg.solve(information, target[..., None])[..., 0]     # (P, 2)
+        return jnp.linalg.solve(information, target[..., None])[..., 0]
 
-    def apply(state, positions, predicted, last_step):
-        w = weights(state)
+    def apply(self, state, positions, predicted, last_step):
+        w = self.weights(state)
         steps = jnp.arange(1, predicted.shape[1] + 1)[None, :, None]
         displacement = predicted - positions[:, None]
         return positions[:, None] + (w[None, :, :1] * displacement
                                      + w[None, :, 1:] * steps * last_step[:, None])
 
-    return Adaptation(init, observe, apply, _issue, _reset_slots)
-
 
 # The methods by the name commands and records give them.
-METHODS = {"speed-scale": speed_scale, "rls-blend": rls_blend}
+METHODS = {"speed-scale": SpeedScale, "rls-blend": RLSBlend}

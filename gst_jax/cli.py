@@ -412,6 +412,24 @@ def add_humans_flags(parser: argparse.ArgumentParser, *, mix: bool = False) -> N
                         f"social force (policy) (default: {said(NO_SHIFT)})")
 
 
+def add_prediction_flags(parser: argparse.ArgumentParser) -> None:
+    """--model, --regions, --alpha, --adapt: what a simulated robot plans against."""
+    from gst_jax.adaptation import METHODS
+    from gst_jax.simulate.crowdnav.navigation import DEFAULT_MODEL, REGIONS
+
+    parser.add_argument("--model", default=DEFAULT_MODEL, type=model_spec,
+                        help="mpc's GST (default: %(default)s)")
+    parser.add_argument("--regions", choices=REGIONS, default="dtaci", help="conformal discs "
+                        "around the predictions, none, or decision: no discs, a safety margin "
+                        "calibrated online to a rate of near misses (default: dtaci)")
+    parser.add_argument("--alpha", type=open_fraction, default=0.1,
+                        help="the discs' miscoverage (default 0.1)")
+    parser.add_argument("--adapt", choices=("none", *METHODS), default="none",
+                        help="correct the predictions online from their delayed scores: the "
+                        "crowd's speed scale, or a recursive-least-squares blend of the model "
+                        "and constant velocity (default: none)")
+
+
 def crowd_conditions(args: argparse.Namespace) -> tuple:
     """`add_humans_flags(mix=True)`'s conditions: the mix, or the one the flags name (a flag
     left out taking the task's default)."""

@@ -29,9 +29,7 @@ def main(argv: list[str] | None = None) -> None:
     add = evaluate_parser.add_argument
     add("--planner", choices=tuple(PLANNERS), default="mpc", help="mpc: GST's predictions; cv-mpc: "
         "constant velocity; standing-mpc: people standing; truth-mpc: the simulator's (mpc)")
-    add("--model", default="pretrained:crowdnav_sj_rand", type=cli.model_spec, help="mpc's GST")
-    add("--regions", choices=("dtaci", "aci", "none"), default="dtaci", help="conformal discs")
-    add("--alpha", type=cli.open_fraction, default=0.1, help="their miscoverage (default 0.1)")
+    cli.add_prediction_flags(evaluate_parser)
     cli.add_humans_flags(evaluate_parser)
     add("--episodes", type=cli.positive_int, default=500, help="episodes (default: 500)")
     add("--plans", type=cli.at_least(SamplingMPC.fixed_plans, "the planner's fixed plans"),
@@ -58,7 +56,7 @@ def navigate(args) -> None:
         return print(json.dumps(list(map(str, written))) if args.json else
                      f"written: {len(written)} files in {args.workdir}")
     described = described_run(args.planner, args.regions, args.alpha, args.humans,
-                              args.reactive, args.num_humans, args.shift, args.model)
+                              args.reactive, args.num_humans, args.shift, args.model, args.adapt)
     result = evaluate_described(described, load_model(args.model) if args.planner == "mpc"
                                 else None, args.plans, args.episodes, args.seed,
                                 Path(args.workdir), args.gif, overwrite=args.overwrite,

@@ -44,14 +44,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gst_jax.config import ModelConfig
-from gst_jax import conformal, crowdnav
+from gst_jax import conformal, predictors
+from gst_jax.adaptation import Adaptation
 from gst_jax.conformal import Regions
 from gst_jax.compiles import use_persistent_cache
-from gst_jax.data import SceneBatch, bucket_size, node_mask_from_positions
+from gst_jax.data import SceneBatch, bucket_size
 from gst_jax.data.batching import LARGEST_COORDINATE
 from gst_jax.errors import DataError
-from gst_jax.predict import compile_checked, make_predict
+from gst_jax.predict import compile_checked
+from gst_jax.predictors import GST, Predictor, last_two_detected
 
 # The id of a free slot; track ids are 0 or more (int32).
 FREE = -1
@@ -84,6 +85,7 @@ class StreamState:
       (`conformal.ScoreBufferState`), or None without regions.
     regions: the conformal state of the regions (`gst_jax.conformal.Regions`): one
       instance per horizon step (pooled), or per slot and horizon step; None without.
+    adaptation: the online correction's state (`gst_jax.adaptation`), or None without.
     """
 
     track_ids: jax.Array
@@ -94,6 +96,7 @@ class StreamState:
     restarted: jax.Array
     feed: Any = None
     regions: Any = None
+    adaptation: Any = None
 
     @property
     def capacity(self) -> int:
@@ -111,14 +114,17 @@ class Frame(NamedTuple):
 
 
 def init_state(capacity: int, obs_len: int, regions: Regions | None = None,
-               pred_len: int = 0) -> StreamState:
-    """An empty stream of `capacity` slots (with `regions`: of `pred_len` predicted steps)."""
+               pred_len: int = 0, adaptation: Adaptation | None = None) -> StreamState:
+    """An empty stream of `capacity` slots (with `regions` or `adaptation`: of `pred_len`
+    predicted steps)."""
     state = StreamState(track_ids=jnp.full((capacity,), FREE, jnp.int32),
                         positions=jnp.zeros((capacity, obs_len, 2), jnp.float32),
                         detected=jnp.zeros((capacity, obs_len), jnp.float32),
                         dropped=jnp.zeros((), jnp.int32),
                         fresh=jnp.zeros((capacity,), bool),
                         restarted=jnp.zeros((capacity,), bool))
+    if adaptation is not None:
+        state = state.replace(adaptation=adaptation.init(capacity, pred_len))
     if regions is None:
         return state
     return state.replace(feed=conformal.score_buffer_init(capacity, pred_len, jnp.float32),
@@ -180,11 +186,7 @@ def observe(state: StreamState, frame: Frame, max_jump: float | None = None) -> 
 
 def as_batch(state: StreamState) -> SceneBatch:
     """The state as a one-scene batch of the model's (T = obs_len observed steps)."""
-    positions = jnp.swapaxes(state.positions, 0, 1)[None]                       # (1, T, C, 2)
-    position_mask = jnp.swapaxes(state.detected, 0, 1)[None]                    # (1, T, C)
-    return SceneBatch(positions=positions, position_mask=position_mask,
-                      node_mask=node_mask_from_positions(position_mask),
-                      scene_mask=jnp.ones(1), window_index=jnp.zeros(1, jnp.int32))
+    return predictors.as_batch(state.positions, state.detected)
 
 
 def update_regions(regions: Regions, state: StreamState, key: jax.Array,
@@ -204,60 +206,53 @@ def update_regions(regions: Regions, state: StreamState, key: jax.Array,
     return state.replace(feed=feed, regions=regions_state), radii, delayed
 
 
-@dataclasses.dataclass(frozen=True)
-class StreamModel:
-    """What a stream predicts with.
-
-    config: the model's; num_samples: K futures per track (1 with `mean`); mean: every
-    predicted step the mean of the output head (GST (P)'s Gaussian; GST (D) is its mean
-    anyway), the graph still sampled where the model selects edges; convention: "gst" (the
-    model reads undetected steps as gst_jax's windows hold them) or "crowdnav" (CrowdNav++'s
-    predictor: -999 and its displacement mask, `gst_jax.crowdnav.predict`; mean mode).
-    """
-
-    config: ModelConfig
-    num_samples: int = 1
-    mean: bool = True
-    convention: str = "gst"
-
-    def __post_init__(self):
-        if self.convention not in ("gst", "crowdnav"):
-            raise ValueError(f"convention must be 'gst' or 'crowdnav', got {self.convention!r}")
-        if self.convention == "crowdnav" and (self.num_samples != 1 or not self.mean):
-            raise ValueError("CrowdNav++'s predictor predicts the mean only (num_samples=1, "
-                             "mean=True)")
+# What a stream predicts with: any `gst_jax.predictors.Predictor`; a model's is `GST`.
+StreamModel = GST
 
 
-def predict_slots(model: StreamModel, params, key: jax.Array, state: StreamState
+def predict_slots(model: Predictor, params, key: jax.Array, state: StreamState
                   ) -> tuple[jax.Array, jax.Array]:
     """Every slot's future from its history: (futures (K, P, C, 2), predicted (C,)), where
-    predicted is 1 for the tracks detected at both of the last two steps (the others'
-    futures are meaningless)."""
-    config = model.config
-    if model.convention == "crowdnav":
-        traj = jnp.where(state.detected[..., None] > 0, state.positions, crowdnav.MISSING)
-        output, predicted = crowdnav.predict(params, config, traj[None],
-                                             state.detected[None, ..., None])
-        return jnp.swapaxes(output[0, ..., :2], 0, 1)[None], predicted[0, :, 0]
-    prediction = make_predict(config, model.num_samples, with_graph=False, mean=model.mean)(
-        params, key, as_batch(state))
-    return prediction.positions[:, 0], prediction.predicted_mask[0]
+    predicted marks the tracks the model predicts (the others' futures are meaningless)."""
+    return model.predict(params, key, state.positions, state.detected)
 
 
-def make_step(model: StreamModel, regions: Regions | None = None, *,
-              max_speed: float | None = None) -> Callable:
+def adapt(adaptation: Adaptation, state: StreamState, futures: jax.Array, predicted: jax.Array
+          ) -> tuple[StreamState, jax.Array]:
+    """Score the raw predictions of 1..P steps ago against the positions observed now,
+    correct this step's futures (K, P, C, 2) (`gst_jax.adaptation`) and keep them raw."""
+    now, seen = state.positions[:, -1], state.detected[:, -1] > 0
+    moved = last_two_detected(state.detected)
+    last_step = jnp.where(moved[:, None], now - state.positions[:, -2], 0.0)
+    adapted_state = adaptation.observe(adaptation.reset_slots(state.adaptation, state.fresh),
+                                       now, seen)
+    per_slot = lambda sample: jnp.moveaxis(sample, 1, 0)                      # (C, P, 2)
+    adapted = jax.vmap(lambda sample: per_slot(adaptation.apply(
+        adapted_state, now, per_slot(sample), last_step)))(futures)
+    adapted_state = adaptation.issue(adapted_state, now, per_slot(futures.mean(axis=0)),
+                                     last_step, predicted > 0)
+    return state.replace(adaptation=adapted_state), adapted
+
+
+def make_step(model: Predictor, regions: Regions | None = None, *,
+              max_speed: float | None = None, step_s: float | None = None,
+              adaptation: Adaptation | None = None) -> Callable:
     """The pure `step(params, state, frame, key) -> (state, futures, predicted, radii,
-    delayed)`: observe the frame, predict every slot (`predict_slots`), and with `regions`
-    score the earlier predictions and issue this step's radii (C, P) (`update_regions`;
-    without, radii and delayed are None). max_speed (m/s): a known id seen farther than this
-    speed allows since its last detection starts a new track (`observe`); None: never. jit
-    it, vmap it over robots."""
-    max_jump = None if max_speed is None else max_speed * model.config.step_s
+    delayed)`: observe the frame, predict every slot (`predict_slots`), with `adaptation`
+    correct the predictions from their delayed scores (`adapt`), and with `regions` score the
+    earlier predictions and issue this step's radii (C, P) (`update_regions`; without, radii
+    and delayed are None). max_speed (m/s): a known id seen farther than this speed allows
+    over `step_s` seconds a step (default: the model's) since its last detection starts a new
+    track (`observe`); None: never. jit it, vmap it over robots."""
+    step_s = step_s or model.config.step_s
+    max_jump = None if max_speed is None else max_speed * step_s
 
     def step(params, state: StreamState, frame: Frame, key: jax.Array):
         state = observe(state, frame, max_jump)
         predict_key, regions_key = jax.random.split(key)
         futures, predicted = predict_slots(model, params, predict_key, state)
+        if adaptation is not None:
+            state, futures = adapt(adaptation, state, futures, predicted)
         if regions is None:
             return state, futures, predicted, None, None
         state, radii, delayed = update_regions(regions, state, regions_key, state.fresh,
@@ -267,12 +262,12 @@ def make_step(model: StreamModel, regions: Regions | None = None, *,
 
 
 @functools.lru_cache(maxsize=16)
-def _jitted_step(model: StreamModel, regions: Regions | None,
-                 max_speed: float | None) -> Callable:
-    """`make_step` jitted once per (model, regions, max_speed), with the key of the step
-    folded in: streams of one model, one after another (a recorded scene's files), share its
-    compiled programs."""
-    step = make_step(model, regions, max_speed=max_speed)
+def _jitted_step(model: Predictor, regions: Regions | None, max_speed: float | None,
+                 adaptation: Adaptation | None = None) -> Callable:
+    """`make_step` jitted once per (model, regions, max_speed, adaptation), with the key of
+    the step folded in: streams of one model, one after another (a recorded scene's files),
+    share its compiled programs."""
+    step = make_step(model, regions, max_speed=max_speed, adaptation=adaptation)
 
     def host_step(params, state: StreamState, frame: Frame, key: jax.Array, index: jax.Array):
         return step(params, state, frame, jax.random.fold_in(key, index))
@@ -302,6 +297,8 @@ class Stream:
     ids are the tracker's, any non-negative integers.
 
     regions: conformal discs around the predictions (`gst_jax.conformal.Regions`), or None.
+    adaptation: an online correction of the predictions from their delayed scores
+    (`gst_jax.adaptation`, e.g. `SpeedScale()`), applied before the discs, or None.
     robot: `step` also takes the robot's position, which joins the graph as one more agent
     (the people's predictions may react to it); it is never predicted.
     max_speed: metres per second (default MAX_SPEED, a brisk walk). An id seen farther from
@@ -321,7 +318,8 @@ class Stream:
     def __init__(self, run, *, num_samples: int = 1, mean: bool = True, capacity: int = 8,
                  seed: int = 0, convention: str = "gst", regions: Regions | None = None,
                  robot: bool = False, max_speed: float | None = MAX_SPEED,
-                 non_finite: str = "raise", compilation_cache: str | None = None):
+                 non_finite: str = "raise", compilation_cache: str | None = None,
+                 adaptation: Adaptation | None = None):
         if non_finite not in NON_FINITE:
             raise DataError(f"Stream: non_finite must be one of {NON_FINITE}, got "
                             f"{non_finite!r}")
@@ -333,7 +331,7 @@ class Stream:
             use_persistent_cache(compilation_cache)
         self.model = StreamModel(run.model_config, num_samples, mean, convention)
         self.params = run.params
-        self.regions, self.robot = regions, robot
+        self.regions, self.robot, self.adaptation = regions, robot, adaptation
         self.max_speed = None if max_speed is None else float(max_speed)
         self.non_finite = non_finite
         self.key = jax.random.key(seed)
@@ -343,11 +341,11 @@ class Stream:
         self._last_time: float | None = None
         config = run.model_config
         self.state = _initial_state(bucket_size(capacity), config.obs_len, regions,
-                                    config.pred_len)
+                                    config.pred_len, adaptation)
         # Per track, the regions of one fresh slot, to give the slots a growing stream adds.
         self._fresh_regions = None if regions is None or regions.pooled else _host_tree(
             regions.init(1, config.pred_len))
-        self._step = _jitted_step(self.model, regions, self.max_speed)
+        self._step = _jitted_step(self.model, regions, self.max_speed, adaptation)
         self._checked: set[int] = set()      # capacities whose step `compile_checked` saw
 
     def step(self, ids, positions, robot_xy=None, *, time: float | None = None
@@ -487,6 +485,9 @@ class Stream:
         grown = state.replace(track_ids=pad(state.track_ids, value=FREE),
                               positions=pad(state.positions), detected=pad(state.detected),
                               fresh=pad(state.fresh), restarted=pad(state.restarted))
+        if self.adaptation is not None:       # issued predictions: (P, C, ...) per slot
+            grown = grown.replace(adaptation=state.adaptation._replace(
+                issued=jax.tree.map(lambda a: pad(a, 1), state.adaptation.issued)))
         if self.regions is None:
             return grown
         feed = state.feed._replace(predicted=pad(state.feed.predicted, 1),
@@ -502,7 +503,7 @@ class Stream:
 
 # `init_state` as one program (a few hundredths of a second from a warm compilation cache)
 # rather than two dozen eager operations, each traced and compiled or loaded on its own.
-_initial_state = jax.jit(init_state, static_argnums=(0, 1, 2, 3))
+_initial_state = jax.jit(init_state, static_argnums=(0, 1, 2, 3, 4))
 
 
 def _host_tree(tree):

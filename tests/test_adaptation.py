@@ -62,7 +62,7 @@ def test_a_correction_changes_nothing_where_the_crowd_does_not_change(name):
 
 
 def test_a_slot_reset_forgets_its_issued_predictions():
-    method = adaptation.speed_scale()
+    method = adaptation.SpeedScale()
     state = method.init(num_slots=2, horizon=3)
     predicted = jnp.zeros((2, 3, 2)).at[:, :, 0].set(jnp.arange(1.0, 4.0))
     state = method.issue(state, jnp.zeros((2, 2)), predicted, jnp.zeros((2, 2)),

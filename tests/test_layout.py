@@ -26,10 +26,12 @@ LAYERS = (
                     "gst_jax.host_devices"}),
     ("data", {"gst_jax.data.", "gst_jax.simulate.crowds", "gst_jax.safe_pickle"}),
     ("numerics", {"gst_jax.graph", "gst_jax.noise", "gst_jax.gumbel", "gst_jax.augment",
+                  "gst_jax.adaptation",
                   "gst_jax.parallel", "gst_jax.simulate.agents.orca"}),
     ("model", {"gst_jax.model."}),
     ("rollout", {"gst_jax.rollout"}),
     ("outputs", {"gst_jax.losses", "gst_jax.metrics", "gst_jax.predict.", "gst_jax.interop",
+                 "gst_jax.predictors",
                  "gst_jax.crowdnav", "gst_jax.conformal.", "gst_jax.stream",
                  "gst_jax.prediction_files", "gst_jax.figures", "gst_jax.simulate",
                  # the simulators' core (but ORCA, numerics), the paper's, CrowdNav++'s

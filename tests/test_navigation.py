@@ -19,7 +19,7 @@ from gst_jax.runs import load_model
 from gst_jax.data.readers import read_tracks
 from gst_jax.simulate.crowdnav import navigation
 from gst_jax.simulate.crowdnav.crowds import Condition, crowd_rows, person_ids, record_episodes
-from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL,
+from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL, TRUTH,
                                                    SOCIAL_FORCE, SPEED_SHIFT, CrowdNav,
                                                    EnvParams, Observation, detected_humans)
 from gst_jax.simulate.crowdnav.navigation import (described_run, episode_measures, max_steps,
@@ -240,7 +240,7 @@ def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_m
     navigate.main(["evaluate", "--planner", "truth-mpc", "--reactive", "--num-humans", "35",
                    "--shift", "speed", "--workdir", str(tmp_path)])
     env = seen.pop("env")
-    assert (env.model, env.num_humans, env.reactive, env.shift) == ("truth", 35, True, "speed")
+    assert (env.model, env.num_humans, env.reactive, env.shift) == (TRUTH, 35, True, "speed")
     assert seen["predictor"] == "truth" and seen["model"] is None
     assert record_name("truth-mpc", "dtaci", "orca", 500, 1000, True, 35, "speed") == (
         "truth-mpc-dtaci-reactive-humans35-shiftspeed-episodes500-seed1000")

@@ -75,7 +75,9 @@ from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
 from gst_jax.simulate.agents import motion
 from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
-from gst_jax.stream import StreamModel, StreamState, init_state, predict_slots, update_regions
+from gst_jax.adaptation import Adaptation
+from gst_jax.predictors import GST, ConstantVelocity, Predictor, Standing, Truth
+from gst_jax.stream import StreamState, adapt, init_state, update_regions
 
 # Outcomes of a step (info["outcome"]), CrowdNav++'s info classes.
 NOTHING, REACH_GOAL, COLLISION, TIMEOUT, DISCOMFORT = range(5)
@@ -89,7 +91,7 @@ TRIES = 8
 ROBOT_TRIES = 32
 # `CrowdNav.model` for predictions that repeat each human's last displacement, that hold each
 # human where it stands, and that are the simulator's own next positions.
-CONSTANT_VELOCITY, STANDING, TRUTH = "constant_velocity", "standing", "truth"
+CONSTANT_VELOCITY, STANDING, TRUTH = ConstantVelocity(), Standing(), Truth()
 # `CrowdNav.human_policy`: how the humans walk (CrowdNav++'s `humans.policy`).
 ORCA, SOCIAL_FORCE = "orca", "social_force"
 # `CrowdNav.shift`: none, the humans speed up, or ORCA humans switch to social force.
@@ -180,19 +182,22 @@ class Observation(NamedTuple):
 @dataclasses.dataclass(frozen=True)
 class CrowdNav:
     """The environment: `num_humans` humans; predictions over `obs_len` observed steps for
-    `pred_len` by `model`: a `StreamModel` (its weights in `EnvParams.predictor`),
-    CONSTANT_VELOCITY, STANDING, TRUTH or None (no prediction); with `regions`, conformal
-    radii around the predicted steps (`gst_jax.conformal.Regions`); the humans walk by ORCA or
-    SOCIAL_FORCE (`human_policy`), seeing the robot where `reactive`, shifted by `shift`."""
+    `pred_len` by `model`: a `gst_jax.predictors.Predictor` (a model's `GST`, its weights in
+    `EnvParams.predictor`; CONSTANT_VELOCITY, STANDING, TRUTH) or None (no prediction); with
+    `adaptation`, the predictions corrected online from their delayed scores
+    (`gst_jax.adaptation`); with `regions`, conformal radii around the predicted steps
+    (`gst_jax.conformal.Regions`); the humans walk by ORCA or SOCIAL_FORCE (`human_policy`),
+    seeing the robot where `reactive`, shifted by `shift`."""
 
     num_humans: int = 20
-    model: StreamModel | str | None = None
+    model: Predictor | None = None
     obs_len: int = 5
     pred_len: int = 5
     regions: Regions | None = None
     human_policy: str = ORCA
     reactive: bool = False
     shift: str = NO_SHIFT
+    adaptation: Adaptation | None = None
 
     def __post_init__(self):
         if self.human_policy not in (ORCA, SOCIAL_FORCE):
@@ -204,20 +209,21 @@ class CrowdNav:
         if self.shift == POLICY_SHIFT and self.human_policy != ORCA:
             raise ValueError("shift 'policy' switches ORCA humans to social force: "
                              f"human_policy must be {ORCA!r}")
-        if isinstance(self.model, str) and self.model not in (CONSTANT_VELOCITY, STANDING,
-                                                              TRUTH):
-            raise ValueError(f"model must be a StreamModel, None, {CONSTANT_VELOCITY!r}, "
-                             f"{STANDING!r} or {TRUTH!r}, got {self.model!r}")
+        if self.model is not None and not hasattr(self.model, "predict"):
+            raise ValueError(f"model must be a gst_jax.predictors.Predictor (GST, "
+                             f"ConstantVelocity, Standing, Truth) or None, got {self.model!r}")
 
     @classmethod
     def with_predictor(cls, predictor, num_humans: int = 20, regions: Regions | None = None,
-                       human_policy: str = ORCA, reactive: bool = False, shift: str = NO_SHIFT
-                       ) -> tuple["CrowdNav", EnvParams]:
+                       human_policy: str = ORCA, reactive: bool = False, shift: str = NO_SHIFT,
+                       adaptation: Adaptation | None = None) -> tuple["CrowdNav", EnvParams]:
         """The environment and its params, predictions by `predictor`: a loaded model
         (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor) whose time step is
-        the environment's (RunError otherwise), CONSTANT_VELOCITY, STANDING, TRUTH or None."""
-        humans = dict(human_policy=human_policy, reactive=reactive, shift=shift)
-        if predictor is None or isinstance(predictor, str):
+        the environment's (RunError otherwise), another `Predictor` (CONSTANT_VELOCITY,
+        STANDING, TRUTH) or None."""
+        humans = dict(human_policy=human_policy, reactive=reactive, shift=shift,
+                      adaptation=adaptation)
+        if predictor is None or hasattr(predictor, "predict"):
             return cls(num_humans, predictor, regions=regions, **humans), EnvParams()
         run, config, params = predictor, predictor.model_config, EnvParams()
         if not math.isclose(config.step_s, params.step_s):
@@ -225,7 +231,7 @@ class CrowdNav:
                            f"moves in steps of {params.step_s:g} s (CrowdNav++'s task): its "
                            f"predictions would be read at the wrong times; use a model of "
                            f"{params.step_s:g} s steps, e.g. pretrained:crowdnav_sj_rand")
-        return (cls(num_humans, StreamModel(config), config.obs_len, config.pred_len, regions,
+        return (cls(num_humans, GST(config), config.obs_len, config.pred_len, regions,
                     **humans), params.replace(predictor=run.params))
 
     @property
@@ -246,7 +252,8 @@ class CrowdNav:
             neighbour_dist=_uniform(orca_key, (), params.neighbour_dist),
             potential=-jnp.linalg.norm(start - goal), time=jnp.zeros(()),
             steps=jnp.zeros((), jnp.int32),
-            tracks=init_state(self.num_humans, self.obs_len, self.regions, self.pred_len
+            tracks=init_state(self.num_humans, self.obs_len, self.regions, self.pred_len,
+                              self.adaptation
                               ).replace(track_ids=jnp.arange(self.num_humans, dtype=jnp.int32)))
         # Humans are placed one after another, each clear of those before it.
         state = _respawn(humans_key, state, params, jnp.ones(self.num_humans, bool))
@@ -290,6 +297,9 @@ class CrowdNav:
         if self.regions is not None:      # a new person's predictions start afresh
             state = state.replace(tracks=state.tracks.replace(
                 feed=conformal.reset_slots(state.tracks.feed, arrived)))
+        if self.adaptation is not None:
+            state = state.replace(tracks=state.tracks.replace(
+                adaptation=self.adaptation.reset_slots(state.tracks.adaptation, arrived)))
         return obs, state, reward, done, {**info, "replaced": arrived}
 
     # -- parts ----------------------------------------------------------------------------
@@ -350,21 +360,19 @@ class CrowdNav:
         visible = tracks.detected[:, -1] > 0
         predicted = (tracks.detected[:, -2:] > 0).all(axis=-1)
         now = state.human_position
-        if isinstance(self.model, StreamModel):
+        predict_key = None
+        if self.model is not None and self.model.uses_key:
             predict_key, key = jax.random.split(key)
-        standing = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
         if self.model is None or fresh:
-            futures, predicted = standing, jnp.zeros_like(predicted)
-        elif self.model == CONSTANT_VELOCITY:
-            last = tracks.positions[:, -1] - tracks.positions[:, -2]
-            steps = jnp.arange(1, self.pred_len + 1)[:, None]
-            futures = now[:, None] + steps * last[:, None]
-        elif self.model == STANDING:
-            futures = standing
-        elif self.model == TRUTH:
-            futures = self._truth(state, params)
+            futures = jnp.broadcast_to(now[:, None], (self.num_humans, self.pred_len, 2))
+            predicted = jnp.zeros_like(predicted)
         else:
-            slots, _ = predict_slots(self.model, params.predictor, predict_key, tracks)
+            slots, _ = self.model.predict(params.predictor, predict_key, tracks.positions,
+                                          tracks.detected, truth=lambda: self._truth(state,
+                                                                                      params))
+            if self.adaptation is not None:
+                tracks, slots = adapt(self.adaptation, tracks, slots, predicted)
+                state = state.replace(tracks=tracks)
             futures = jnp.swapaxes(slots[0], 0, 1)                              # (H, P, 2)
         futures = jnp.where(predicted[:, None, None], futures, now[:, None])
         radii = jnp.zeros((self.num_humans, self.pred_len))

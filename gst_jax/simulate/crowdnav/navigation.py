@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gst_jax.adaptation import METHODS
 from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
 from gst_jax.paired import paired_means, paired_rates
@@ -31,7 +32,7 @@ from gst_jax.simulate.crowdnav.environment import (COLLISION, CONSTANT_VELOCITY,
                                                    POLICY_SHIFT, REACH_GOAL, STANDING, TIMEOUT,
                                                    TRUTH, CrowdNav, EnvParams, Observation)
 from gst_jax.simulate.crowdnav.figures import animate_navigation
-from gst_jax.simulate.crowdnav.planner import PlannerState, SamplingMPC
+from gst_jax.simulate.crowdnav.planner import DecisionCalibration, PlannerState, SamplingMPC
 
 # A planner: (key, its state, observation) -> (velocity (2,), its next state).
 Planner = Callable[[jax.Array, PlannerState, Observation], tuple[jax.Array, PlannerState]]
@@ -45,27 +46,37 @@ PLANNERS = {"mpc": (None, "gst"), "cv-mpc": (CONSTANT_VELOCITY, "cv"),
 
 def described_run(planner: str, regions: str, alpha: float = 0.1, humans: str = "orca",
                   reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT,
-                  model: str | None = None) -> dict:
+                  model: str | None = None, adaptation: str = "none") -> dict:
     """What names an evaluation and its record (`evaluate`'s `described`): the planner, its
-    predictor as records name it (gst, cv, none: people standing, truth), the discs, the
-    humans (`humans` "orca" or "social-force"), and GST's model for planner mpc."""
+    predictor as records name it (gst, cv, none: people standing, truth), the discs (REGIONS:
+    a conformal method, "none", or "decision": no discs, a margin calibrated online), the
+    humans (`humans` "orca" or "social-force"), GST's model for planner mpc, and the online
+    correction of the predictions (`gst_jax.adaptation.METHODS`, or "none")."""
     if shift == POLICY_SHIFT and humans != "orca":
         raise RunError("--shift policy switches ORCA humans to social force: it needs "
                        "--humans orca")
     return {"planner": planner, "predictor": PLANNERS[planner][1], "regions": regions,
             "alpha": alpha, "humans": humans, "reactive": reactive, "num_humans": num_humans,
-            "shift": shift, "model": model if planner == "mpc" else None}
+            "shift": shift, "model": model if planner == "mpc" else None,
+            "adaptation": adaptation}
+
+
+# What --regions takes: conformal discs, none, or a margin calibrated online.
+DECISION = "decision"
+REGIONS = ("dtaci", "aci", "none", DECISION)
 
 
 def environment_for(described: dict, gst=None) -> tuple[CrowdNav, EnvParams]:
     """The environment a described evaluation plays; `gst`: the loaded model for planner
     mpc."""
-    regions = (None if described["regions"] == "none" else
+    regions = (None if described["regions"] in ("none", DECISION) else
                Regions(described["regions"], described["alpha"]))
+    adaptation = described.get("adaptation", "none")
     return CrowdNav.with_predictor(PLANNERS[described["planner"]][0] or gst,
                                    described["num_humans"], regions,
                                    described["humans"].replace("-", "_"),
-                                   described["reactive"], described["shift"])
+                                   described["reactive"], described["shift"],
+                                   None if adaptation == "none" else METHODS[adaptation]())
 
 
 def max_steps(params: EnvParams) -> int:
@@ -212,8 +223,11 @@ def row_label(record: dict) -> str:
     predictions = {"cv-mpc": "constant velocity", "standing-mpc": "none (standing)",
                    "truth-mpc": "truth (the simulator's)"}.get(
         record["planner"], f"GST ({model_name(model)})")
-    discs = ("none" if record["regions"] == "none" else
-             f"{'DtACI' if record['regions'] == 'dtaci' else 'ACI'} {record['alpha']:g}")
+    adapted = record.get("adaptation", "none")
+    predictions += f", {adapted}" if adapted != "none" else ""
+    method = {"dtaci": "DtACI", "aci": "ACI"}.get(record["regions"], record["regions"])
+    discs = {"none": "none", DECISION: "calibrated margin"}.get(
+        record["regions"], f"{method} {record['alpha']:g}")
     humans = "social force" if record.get("humans") == "social-force" else "ORCA"
     humans = ", ".join([humans, *([f"{record['num_humans']} of them"]
                                   if record.get("num_humans", 20) != 20 else []),
@@ -259,8 +273,9 @@ def same_episodes(record: dict, out: Path) -> list[dict]:
             continue
         same = isinstance(other, dict) and "per_episode" in other and all(
             other.get(k) == record.get(k) for k in EPISODES_OF)
-        if same and (other["planner"], other["regions"], other.get("alpha")) != (
-                record["planner"], record["regions"], record.get("alpha")):
+        setting_of = lambda r: (r["planner"], r["regions"], r.get("alpha"), r.get("model"),
+                                r.get("adaptation", "none"))
+        if same and setting_of(other) != setting_of(record):
             found.append(other)
     return found
 
@@ -277,10 +292,13 @@ def compare(a: dict, b: dict) -> dict:
 
 def setting(record: dict) -> str:
     """A record's predictor and discs, as paired comparisons name them: e.g. "cv + DtACI"."""
-    discs = {"none": "no discs", "dtaci": "DtACI", "aci": "ACI"}[record["regions"]]
+    discs = {"none": "no discs", "dtaci": "DtACI", "aci": "ACI",
+             DECISION: "calibrated margin"}[record["regions"]]
     model = record.get("model")
     named = f" ({model_name(model)})" if model not in (None, DEFAULT_MODEL) else ""
-    return f"{record['predictor']}{named} + {discs}"
+    adapted = record.get("adaptation", "none")
+    return (f"{record['predictor']}{named}" + (f" + {adapted}" if adapted != "none" else "")
+            + f" + {discs}")
 
 
 def paired_lines(record: dict, others: list[dict]) -> list[str]:
@@ -301,17 +319,18 @@ def paired_lines(record: dict, others: list[dict]) -> list[str]:
 
 def record_name(planner: str, regions: str, humans: str, episodes: int, seed: int,
                 reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT,
-                model: str | None = None) -> str:
-    """The stem of an evaluation's files:
-    PLANNER-REGIONS[-HUMANS][-reactive][-humansN][-shiftS][-modelNAME]-episodesCOUNT-seedSEED
-    (the defaults unnamed: 20 ORCA humans who ignore the robot, no shift, GST's model
-    DEFAULT_MODEL), so that runs of other settings and lengths sit beside it."""
+                model: str | None = None, adaptation: str = "none") -> str:
+    """The stem of an evaluation's files: PLANNER-REGIONS[-HUMANS][-reactive][-humansN]
+    [-shiftS][-modelNAME][-adaptNAME]-episodesCOUNT-seedSEED (the defaults unnamed: 20 ORCA
+    humans who ignore the robot, no shift, GST's model DEFAULT_MODEL, no adaptation), so that
+    runs of other settings and lengths sit beside it."""
     return "-".join([planner, regions, *([humans] if humans != "orca" else []),
                      *(["reactive"] if reactive else []),
                      *([f"humans{num_humans}"] if num_humans != 20 else []),
                      *([f"shift{shift}"] if shift != NO_SHIFT else []),
                      *([f"model{model_name(model)}"] if model not in (None, DEFAULT_MODEL)
                        else []),
+                     *([f"adapt{adaptation}"] if adaptation != "none" else []),
                      f"episodes{episodes}", f"seed{seed}"])
 
 
@@ -329,7 +348,9 @@ def evaluate_described(described: dict, gst, plans: int, count: int, seed: int, 
     """`evaluate` of the sampling MPC with `plans` plans in the environment `described`
     (`described_run`; `gst`: the loaded model for planner mpc)."""
     env, params = environment_for(described, gst)
-    planner = SamplingMPC(num_plans=plans, horizon=env.pred_len, step_s=params.step_s)
+    calibration = DecisionCalibration() if described["regions"] == DECISION else None
+    planner = SamplingMPC(num_plans=plans, horizon=env.pred_len, step_s=params.step_s,
+                          calibration=calibration)
     return evaluate(env, params, planner, count, seed, out, described, gifs, **options)
 
 
@@ -344,7 +365,8 @@ def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int,
     name = record_name(described["planner"], described["regions"],
                        described.get("humans", "orca"), count, seed,
                        described.get("reactive", False), described.get("num_humans", 20),
-                       described.get("shift", NO_SHIFT), described.get("model"))
+                       described.get("shift", NO_SHIFT), described.get("model"),
+                       described.get("adaptation", "none"))
     if (out / f"{name}.json").exists() and not overwrite:
         raise RunError(f"{out / name}.json exists: a run of the same {count} episodes; "
                        f"--overwrite replaces it, another --workdir keeps it")
