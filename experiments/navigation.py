@@ -57,6 +57,19 @@ MATRIX = [(planner, regions, scenario) for scenario in SCENARIOS
           for planner in ("truth-mpc", "mpc", "cv-mpc", "standing-mpc")
           for regions in ("dtaci", "none")]
 MODEL = "pretrained:crowdnav_sj_rand"
+# Issue 90: where the crowd changes (and, to check it costs nothing there, the default task),
+# the predictor trained on the task's own humans, each online correction, and the margin
+# calibrated online, against CV's settings and the truth of the matrix above.
+TRAINED_HERE = "pretrained:crowdnav_env"
+ISSUE90 = [configuration for scenario in (NAMED["speed"], NAMED["policy"], DEFAULT)
+           for configuration in [
+               ("mpc", "none", scenario, TRAINED_HERE, "none"),
+               ("mpc", "dtaci", scenario, TRAINED_HERE, "none"),
+               ("mpc", "none", scenario, TRAINED_HERE, "speed-scale"),
+               ("mpc", "none", scenario, TRAINED_HERE, "rls-blend"),
+               ("cv-mpc", "none", scenario, MODEL, "speed-scale"),
+               ("cv-mpc", "decision", scenario),
+               ("mpc", "decision", scenario, TRAINED_HERE, "none")]]
 # CrowdNav++'s released test logs (commit 3907731, trained_models/*/test/*.log, line 9; 500
 # episodes each; path length over all episodes, navigation time over the successes).
 CROWDNAV = [
@@ -68,29 +81,32 @@ CROWDNAV = [
 ]
 
 
-def described(planner: str, regions: str, scenario: tuple) -> dict:
-    """A configuration's record fields (those that name its file among them)."""
-    humans, reactive, num_humans, shift = scenario
-    return described_run(planner, regions, 0.1, humans, reactive, num_humans, shift, MODEL)
+def described(configuration: tuple) -> dict:
+    """A configuration's record fields (those that name its file among them): (planner,
+    regions, scenario[, model, adaptation])."""
+    planner, regions, (humans, reactive, num_humans, shift), *rest = configuration
+    model, adaptation = rest or (MODEL, "none")
+    return described_run(planner, regions, 0.1, humans, reactive, num_humans, shift, model,
+                         adaptation)
 
 
-def found(planner: str, regions: str, scenario: tuple, episodes: int, seed: int, out
-          ) -> dict | None:
+def found(configuration: tuple, episodes: int, seed: int, out) -> dict | None:
     """A configuration's record, if the output folder has it (records made before issue 75
     lack its fields: they are the defaults)."""
-    humans, reactive, num_humans, shift = scenario
-    name = record_name(planner, regions, humans, episodes, seed, reactive, num_humans, shift)
+    fields = described(configuration)
+    name = record_name(fields["planner"], fields["regions"], fields["humans"], episodes, seed,
+                       fields["reactive"], fields["num_humans"], fields["shift"],
+                       fields["model"], fields["adaptation"])
     path = out / f"{name}.json"
-    return {**described(planner, regions, scenario), **json.loads(path.read_text())
-            } if path.exists() else None
+    return {**fields, **json.loads(path.read_text())} if path.exists() else None
 
 
-def run(planner: str, regions: str, scenario: tuple, episodes: int, seed: int, out) -> dict:
-    record = found(planner, regions, scenario, episodes, seed, out)
+def run(configuration: tuple, episodes: int, seed: int, out) -> dict:
+    record = found(configuration, episodes, seed, out)
     if record is not None:
         return record
-    return evaluate_described(described(planner, regions, scenario),
-                              load_model(MODEL) if planner == "mpc" else None,
+    fields = described(configuration)
+    return evaluate_described(fields, load_model(fields["model"]) if fields["model"] else None,
                               SamplingMPC.num_plans, episodes, seed, out)
 
 
@@ -158,6 +174,15 @@ def matrix_table(rows: list[dict], episodes: int) -> str:
                      f"{row['timeout']:.3f} | {row['intrusion_ratio']:.3f} | "
                      f"{row['navigation_time_s']:.2f} | {row['mean_radius_m']:.3f} |")
     return "\n".join(lines)
+
+
+def configuration_of(row: dict) -> tuple:
+    """A record's configuration as the lists above write it: (planner, regions, scenario),
+    then (model, adaptation) where they are not the matrix's."""
+    model = row.get("model") or MODEL
+    adaptation = row.get("adaptation", "none")
+    plain = (row["planner"], row["regions"], scenario_of(row))
+    return plain if (model, adaptation) == (MODEL, "none") else (*plain, model, adaptation)
 
 
 def scenario_of(row: dict) -> tuple:
@@ -231,31 +256,33 @@ def main() -> None:
     runs = out / "runs" / "navigation" if args.publish else out
     runs.mkdir(parents=True, exist_ok=True)
     rows, missing, seconds = [], [], []
-    everything = CONFIGURATIONS + [c for c in MATRIX if c not in CONFIGURATIONS]
+    everything = CONFIGURATIONS + [c for c in MATRIX + ISSUE90 if c not in CONFIGURATIONS]
     # The truth's rows run last, smallest crowds first: they simulate the crowd once more for
     # every prediction (70 min for 500 episodes among 35 reactive humans, against about 2 for
     # the others), so a study stopped early keeps the most of them.
     in_order = sorted(everything, key=lambda c: (c[0] == "truth-mpc") * (1 + c[2][2]))
     if args.scenarios:
         in_order = [c for c in in_order if c[2] in [NAMED[name] for name in args.scenarios]]
-    for done, (planner, regions, scenario) in enumerate([] if args.tabulate else in_order):
-        if found(planner, regions, scenario, args.episodes, args.seed, runs) is None:
+    for done, configuration in enumerate([] if args.tabulate else in_order):
+        if found(configuration, args.episodes, args.seed, runs) is None:
             started = time.perf_counter()
-            record = run(planner, regions, scenario, args.episodes, args.seed, runs)
+            record = run(configuration, args.episodes, args.seed, runs)
             seconds.append(time.perf_counter() - started)
-            left = sum(found(*c, args.episodes, args.seed, runs) is None for c in in_order)
+            left = sum(found(c, args.episodes, args.seed, runs) is None for c in in_order)
             print(f"[{done + 1}/{len(in_order)}] {row_label(record)}: success "
                   f"{record['success']:.3f}, {seconds[-1]:.0f} s; {left} left, about "
                   f"{left * sum(seconds) / len(seconds) / 3600:.1f} h at this pace", flush=True)
-    for planner, regions, scenario in everything:
-        record = found(planner, regions, scenario, args.episodes, args.seed, runs)
+    for configuration in everything:
+        record = found(configuration, args.episodes, args.seed, runs)
         if record is None:
-            missing.append(f"{planner} {regions} ({scenario_name(scenario)})")
+            fields = described(configuration)
+            missing.append(f"{configuration[0]} {configuration[1]} "
+                           f"({scenario_name(configuration[2])}"
+                           + (f"; {setting(fields)}" if len(configuration) > 3 else "") + ")")
             continue
         rows.append({**record, "label": row_label(record)})
-    default = [r for r in rows if (r["planner"], r["regions"], scenario_of(r))
-               in CONFIGURATIONS]
-    matrix = [r for r in rows if (r["planner"], r["regions"], scenario_of(r)) in MATRIX]
+    default = [r for r in rows if configuration_of(r) in CONFIGURATIONS]
+    matrix = [r for r in rows if configuration_of(r) in MATRIX]
     published = rows + [{"label": f"{name} | | | ORCA", **figures}
                         for name, figures in CROWDNAV]
     text = "\n".join([
