@@ -26,6 +26,7 @@ from gst_jax.errors import DataError
 from gst_jax import resources
 from gst_jax.predict import make_predict
 from gst_jax.runs import load_model
+from gst_jax.testing.drawn import line_data, saved_figures
 
 SIM = Path(__file__).parents[1] / "data" / "samples" / "sim_crowds" / "episode_040.txt"
 
@@ -211,7 +212,10 @@ def test_measuring_a_recording_gives_what_a_stream_with_regions_issues(method, p
 
 def test_the_conformal_command_reports_coverage_and_radius_per_horizon_step(tmp_path, capsys):
     """`python -m gst_jax.conformal` on the simulated crowd: JSON with coverage and radius
-    per predicted step, split calibrated on the first 30 % of frames, and the figure."""
+    per predicted step, split calibrated on the first 30 % of frames, and the figure: its
+    coverage and mean radius are the result's, its scene draws the discs."""
+    from matplotlib.patches import Circle
+
     from gst_jax.conformal.__main__ import main
 
     argv = ["pretrained:crowdnav_sim", "--data", str(SIM), "--fps", "4", "--split", "all",
@@ -219,9 +223,18 @@ def test_the_conformal_command_reports_coverage_and_radius_per_horizon_step(tmp_
     results = {}
     for method in ("split", "dtaci"):
         figure = tmp_path / f"{method}.png"
-        main([*argv, "--method", method, "--json", "--figure", str(figure)])
-        results[method] = json.loads(capsys.readouterr().out)
-        assert figure.stat().st_size > 10_000
+        with saved_figures() as saved:
+            main([*argv, "--method", method, "--json", "--figure", str(figure)])
+        results[method] = result = json.loads(capsys.readouterr().out)
+        assert figure.is_file() and list(saved) == [figure]
+        axes = {ax.get_ylabel(): ax for ax in saved[figure].axes}
+        seconds = result["step_s"] * np.arange(1, len(result["coverage"]) + 1)
+        [coverage_line] = line_data(axes["long-run coverage"], "tab:purple")
+        np.testing.assert_allclose(coverage_line, np.column_stack([seconds, result["coverage"]]))
+        [radius_line] = line_data(axes["mean radius (m)"])
+        np.testing.assert_allclose(radius_line, np.column_stack([seconds, result["radius"]]))
+        discs = [p for p in axes["y (m)"].patches if isinstance(p, Circle)]
+        assert discs and all(0 < disc.radius < 5 for disc in discs), len(discs)
     for result in results.values():
         assert result["frames"] == 60 and result["calibration_frames"] == 18
         assert len(result["coverage"]) == len(result["radius"]) == 5
