@@ -17,7 +17,9 @@ says what they are:
      "config_sha256": "..."}          # of this file's other fields (`config_digest`)
 
 `load` checks every field of config.json against its range (`MODEL_FIELDS`, `DATA_FIELDS`,
-`TRAIN_FIELDS`: a time grid of 10^6 or 0 steps or a NaN step is refused, not compiled), then
+`TRAIN_FIELDS`, read from each field's rule in `gst_jax.config`, the rule the flags and the
+configs' construction read too: a time grid of 10^6 or 0 steps or a NaN step is refused, not
+compiled), then
 config.json's checksum: `config_sha256` is the SHA-256 of its other fields as canonical JSON
 (sorted keys, no spaces, ASCII; `config_digest`), so an edit that keeps the parameters' layout
 (`pred_len`, `obs_len`, `step_s`, `dropout`, the provenance) is detected like a damaged file.
@@ -35,9 +37,9 @@ model shipped in the package (`gst_jax/pretrained/NAME/`: these two files and it
 meta.json). `python -m gst_jax.pretrained export MODEL --out DIR` writes such a folder from any
 model, `load_model(DIR)` and `crowdnav.load(DIR)` read it.
 
-One job, though over 400 lines: the format, written and read; most of it is the range of every
-field and the checks a read makes, kept beside the writer so that what is written is what is
-checked.
+One job, though over 400 lines: the format, written and read; most of it is the checks a read
+makes (of the fields, by their rules in `gst_jax.config`; of the checksums, tensors and
+values), kept beside the writer so that what is written is what is checked.
 """
 
 from __future__ import annotations
@@ -46,7 +48,6 @@ import dataclasses
 import functools
 import hashlib
 import json
-import math
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -55,8 +56,7 @@ import jax
 import numpy as np
 import safetensors.numpy
 
-from gst_jax.config import (ATTENTION_KINDS, PROTOCOLS, SCHEDULES, TEMPORAL_MODELS, DataConfig,
-                            ModelConfig, TrainConfig)
+from gst_jax.config import DataConfig, ModelConfig, TrainConfig, rules
 from gst_jax.errors import RunError
 from gst_jax.model.gst import init_params
 from gst_jax.model.heads import HEADS
@@ -81,21 +81,6 @@ def integers(low: int, high: int) -> Check:
     def check(value):
         if type(value) is not int or not low <= value <= high:
             return f"must be an integer from {low} to {high}"
-    return check
-
-
-def numbers(low: float, high: float, *, low_open: bool = False, high_open: bool = False,
-            optional: bool = False) -> Check:
-    """Finite numbers in [low, high], ( where an end is open; or null where optional."""
-    interval = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
-
-    def check(value):
-        if value is None and optional:
-            return None
-        if (type(value) not in (int, float) or not math.isfinite(value)
-                or value < low or value > high or (low_open and value == low)
-                or (high_open and value == high)):
-            return f"must be a finite number in {interval}" + (" or null" if optional else "")
     return check
 
 
@@ -144,36 +129,25 @@ def field_problem(values: Any, fields: Mapping[str, Check], where: str = "",
     return None
 
 
-# The ranges of config.json's fields. A model's widths and depths are checked against the
-# tensors too; their bounds, far beyond any model of this kind (the paper's: d = 32, three
-# layers), stop absurd values before any work is spent on them (a depth of 10^6 would be
-# traced layer by layer). The time grid, the dropout rate, the neighbourhood and the switches
-# shape no tensor: their ranges are all that keeps a wrong value out (a horizon of 10^6 steps
-# would be compiled and run; 1000 steps is minutes of walking at any step).
-MAX_STEPS = 1000
-MODEL_FIELDS: dict[str, Check] = {
-    "node_dim": integers(1, 4096), "edge_dim": integers(1, 8192),
-    "max_edge_heads": integers(0, 1024), "num_edge_heads": integers(0, 1024),
-    "ghost": boolean, "encoder_layers": integers(1, 64), "encoder_heads": integers(1, 1024),
-    "encoder_ff_dim": integers(1, 65536), "lstm_hidden": integers(1, 4096),
-    "dropout": numbers(0, 1, high_open=True), "output": one_of(lambda: HEADS),
-    "temporal": one_of(lambda: TEMPORAL_MODELS), "step_s": numbers(0, 60, low_open=True),
-    "obs_len": integers(1, MAX_STEPS), "pred_len": integers(1, MAX_STEPS),
-    "candidates": integers(0, 1_000_000), "attention": one_of(lambda: ATTENTION_KINDS)}
-DATA_FIELDS: dict[str, Check] = {
-    "scene": text, "protocol": one_of(lambda: PROTOCOLS),
-    "train_fraction": numbers(0, 1, low_open=True), "val_fraction": numbers(0, 1, high_open=True),
-    "data_dir": text, "drop_off_grid": boolean, "data": text,
-    "fps": numbers(0, 10_000, low_open=True, optional=True),
-    "scale": numbers(0, 1e6, low_open=True), "columns": text}
-TRAIN_FIELDS: dict[str, Check] = {
-    "epochs": integers(1, 10**6), "schedule": one_of(lambda: SCHEDULES),
-    "batch_size": integers(1, 10**6), "learning_rate": numbers(0, 1e3, low_open=True),
-    "lr_decay": numbers(0, 1e3, low_open=True), "lr_decay_every": integers(1, 10**6),
-    "tau_start": numbers(0, 1e3, low_open=True), "tau_end": numbers(0, 1e3, low_open=True),
-    "rotate": boolean, "fully_detected_only": boolean, "seed": integers(-2**63, 2**63 - 1),
-    "checkpoint_every": integers(1, 10**6), "eval_every": integers(0, 10**6),
-    "max_train_windows": integers(0, 10**12), "init": text}
+def schema_checks(config_class) -> dict[str, Check]:
+    """The checks of a config's fields in config.json: each field's rule (`gst_jax.config`:
+    its type, range or choices), in a file's words ("must be an integer from 1 to 1000")."""
+    return {name: rule.problem for name, rule in rules(config_class).items()}
+
+
+def required_text(value) -> str | None:
+    return None if isinstance(value, str) else "must be a string"
+
+
+# The ranges of config.json's fields: every field's rule in gst_jax.config (their bounds and
+# why they are where they are are written there), with two read elsewhere. A model's output
+# is one of the heads of the model layer (HEADS, which may grow). A scene's name rule is
+# checked where the run is built from the file (`DataConfig`, refused in its own words and
+# naming the file: `runs.load_weights_run`); here it must be a string.
+MODEL_FIELDS: dict[str, Check] = {**schema_checks(ModelConfig),
+                                  "output": one_of(lambda: HEADS)}
+DATA_FIELDS: dict[str, Check] = {**schema_checks(DataConfig), "scene": required_text}
+TRAIN_FIELDS: dict[str, Check] = schema_checks(TrainConfig)
 
 
 def sha256_text(value) -> str | None:
