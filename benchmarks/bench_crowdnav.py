@@ -67,7 +67,8 @@ def crowdnav_interface(path: Path, num_env: int, threads: int):
     sys.path.insert(0, str(path.absolute()))
     import torch
     from gst_updated.scripts.wrapper.crowd_nav_interface_parallel import (
-        CrowdNavPredInterfaceMultiEnv)
+        CrowdNavPredInterfaceMultiEnv,
+    )
     torch.set_num_threads(threads)
     load_path = path / CHECKPOINT
     # Its args.pickle read without running what it names; its own code reads the .pt with

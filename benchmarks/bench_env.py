@@ -21,13 +21,17 @@ import statistics
 import time
 
 import jax
-import jax.numpy as jnp
 
 from common import print_table, record
 from gst_jax.conformal import Regions
 from gst_jax.runs import load_model
-from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, ORCA, SOCIAL_FORCE, CrowdNav,
-                                                   EnvParams)
+from gst_jax.simulate.crowdnav.environment import (
+    CONSTANT_VELOCITY,
+    ORCA,
+    SOCIAL_FORCE,
+    CrowdNav,
+    EnvParams,
+)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.stream import StreamModel, predict_slots
 

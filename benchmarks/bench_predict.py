@@ -19,10 +19,10 @@ import numpy as np
 
 from bench_peak import measure_peak_gflops
 from common import matmul_flops, peak_rss_gib, print_table, record
-from release import time_release
 from gst_jax import data, init_params, make_batch
 from gst_jax.config import SCENES, DataConfig, ModelConfig
 from gst_jax.predict import make_predict
+from release import time_release
 
 
 def best_of(function, repeats: int) -> float:

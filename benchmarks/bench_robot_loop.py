@@ -132,7 +132,7 @@ def grow(player, count_compiles) -> dict:
 
 
 def tracker_loop(player, count_compiles) -> dict:
-    seconds, covered, scored, radius = [], 0, 0, []
+    seconds, radius = [], []
     horizon = player.model.config.pred_len
     per_step_covered, per_step_scored = np.zeros(horizon), np.zeros(horizon)
     restarted = 0

@@ -28,8 +28,12 @@ import jax
 from common import peak_rss_gib, print_table, record
 from gst_jax import cli, data
 from gst_jax.config import DETECTION, SCENES, DataConfig, ModelConfig, TrainConfig
-from gst_jax.training import members as sweep_members, state as train_state, sweep
-from gst_jax.training import step as train_step
+from gst_jax.training import (
+    members as sweep_members,
+    state as train_state,
+    step as train_step,
+    sweep,
+)
 
 LAYOUTS = ("all-vmap", "all-map", "n-vmap", "n-map", "runs")
 

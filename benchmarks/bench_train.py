@@ -1,8 +1,9 @@
 """Training throughput: full epochs of a scene, ours and the authors' release in the same run.
 
     python benchmarks/bench_train.py --scenes eth zara1 univ
-    python benchmarks/bench_train.py --scenes eth --release-dir REL --release-python REL_VENV/bin/python
-    python benchmarks/bench_train.py --scenes eth --protocol loo     # leave-one-scene-out, held-out eth
+    python benchmarks/bench_train.py --scenes eth --release-dir REL \
+        --release-python REL_VENV/bin/python
+    python benchmarks/bench_train.py --scenes eth --protocol loo   # leave-one-out, eth held out
 
 Ours: every program of the epoch is compiled first (one micro-batch of each shape; the
 compilations are counted and timed), then one whole epoch is timed exactly as the training
@@ -23,12 +24,12 @@ import numpy as np
 
 from bench_peak import measure_peak_gflops
 from common import matmul_flops, peak_rss_gib, print_table, record
-from release import time_release
 from gst_jax import data
 from gst_jax.compiles import count_compiles
 from gst_jax.config import SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step, training_loss
+from release import time_release
 
 
 def step_flops(config: ModelConfig, params, hparams, batch: data.SceneBatch) -> float:
@@ -97,7 +98,8 @@ def time_epoch(scene: str, protocol: str, edge_heads: int, seed: int) -> dict:
             "compiles_in_epoch": late_compiles.count, "epoch_s": epoch_s,
             "windows_per_s": len(window_set) / epoch_s,
             "gflop_executed": executed / 1e9, "gflop_unpadded": unpadded / 1e9,
-            "gflops_executed": executed / epoch_s / 1e9, "gflops_unpadded": unpadded / epoch_s / 1e9}
+            "gflops_executed": executed / epoch_s / 1e9,
+            "gflops_unpadded": unpadded / epoch_s / 1e9}
 
 
 def main() -> None:

@@ -18,9 +18,9 @@ YNNPACK fusion). Measured in each:
   median of epochs 2-3 (compiled in epoch 1), tcmalloc preloaded where it is installed.
 Each call is timed in `--rounds` rounds of `--calls` calls after compiling: the minimum and
 the median of the round medians, in each of `--passes` processes per setting (interleaved across
-the settings); the table gives each setting's fastest pass. `--check` compares the default with the fastest setting on
-the drop-in and the stream step and fails when the default is slower by more than
-`--margin` (the run-to-run noise of a quiet machine).
+the settings); the table gives each setting's fastest pass. `--check` compares the default with
+the fastest setting on the drop-in and the stream step and fails when the default is slower by
+more than `--margin` (the run-to-run noise of a quiet machine).
 """
 
 from __future__ import annotations
@@ -63,8 +63,8 @@ def worker(rounds: int, calls: int) -> dict:
     import numpy as np
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    from bench_crowdnav import inputs, ours
     import gst_jax
+    from bench_crowdnav import inputs, ours
     from gst_jax.runs import load_model
 
     out = {}

@@ -56,7 +56,9 @@ def _jaxpr_flops(jaxpr) -> float:
 
 def machine() -> str:
     device = jax.devices()[0]
-    return f"{device.platform}:{getattr(device, 'device_kind', '')} ({platform.processor() or platform.machine()}, {jax.local_device_count()} device(s))"
+    processor = platform.processor() or platform.machine()
+    return (f"{device.platform}:{getattr(device, 'device_kind', '')} "
+            f"({processor}, {jax.local_device_count()} device(s))")
 
 
 def record(benchmark: str, **fields) -> dict:

@@ -2,7 +2,8 @@
 upstream: a sweep of four members (n in {1, 2} x 2 seeds) of a one-layer GST on hotel's first
 windows, trained one epoch and evaluated, split over forced host devices.
 
-    XLA_FLAGS="--xla_force_host_platform_device_count=4 --xla_cpu_experimental_ynn_fusion_type=dot,eltwise,reduce" \
+    XLA_FLAGS="--xla_force_host_platform_device_count=4 \
+    --xla_cpu_experimental_ynn_fusion_type=dot,eltwise,reduce" \
         python3 benchmarks/ynnpack_sweep_repro.py 4
 
 On the AMD EPYC VM of 2026-12-03 it exited 139 every time with elementwise or reduction fusions

@@ -29,9 +29,9 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
-import _common
 import numpy as np
 
+import _common
 from gst_jax.config import Member
 from gst_jax.figures import n_label
 

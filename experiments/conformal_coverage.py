@@ -37,11 +37,17 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from _common import add_results_flags, results_folder
 
+from _common import add_results_flags, results_folder
 from gst_jax.config import DataConfig
-from gst_jax.coverage import (FrameRows, exchangeable_coverage, measure, record,
-                              scene_streams, simultaneous)
+from gst_jax.coverage import (
+    FrameRows,
+    exchangeable_coverage,
+    measure,
+    record,
+    scene_streams,
+    simultaneous,
+)
 from gst_jax.progress import Progress, hms
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowds import CrowdConfig, simulate_crowd

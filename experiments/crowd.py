@@ -26,11 +26,10 @@ import sys
 from pathlib import Path
 
 from _common import PARKED, add_results_flags, evaluate, park, results_folder
-from table1 import run_scene_seed, train_flags, workdir_of
-
 from gst_jax import pretrained
 from gst_jax.config import CROWD, CROWD_SCENES, ETH_UCY_SCENES, DataConfig
 from gst_jax.io.workdir import WorkDir
+from table1 import run_scene_seed, train_flags, workdir_of
 
 SCENES = CROWD_SCENES
 OWN_MODEL_SEED = 1000

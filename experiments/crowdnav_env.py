@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 
 import jax
-from _common import add_results_flags, results_folder
 
+from _common import add_results_flags, results_folder
 from gst_jax.config import DataConfig
 from gst_jax.data import WindowSet, load_split
 from gst_jax.evaluation import evaluate_params

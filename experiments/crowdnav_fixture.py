@@ -67,7 +67,8 @@ def main() -> None:
     sys.path.insert(0, str(args.crowdnav.absolute()))    # its code, run from its checkout
     import torch
     from gst_updated.scripts.wrapper.crowd_nav_interface_parallel import (
-        CrowdNavPredInterfaceMultiEnv)
+        CrowdNavPredInterfaceMultiEnv,
+    )
 
     torch.set_num_threads(1)
     input_traj, input_mask = make_inputs()

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from _common import add_results_flags, results_folder
 
+from _common import add_results_flags, results_folder
 from gst_jax import crowdnav, data
 from gst_jax.config import DataConfig
 from gst_jax.evaluation import evaluate_params

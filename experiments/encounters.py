@@ -28,15 +28,19 @@ import re
 from pathlib import Path
 
 import numpy as np
+
 from _common import add_results_flags, results_folder
 from _study import encounter_label
-
 from gst_jax.config import Member
 from gst_jax.runs import load_model
 from gst_jax.simulate.agents.predicted import constant_velocity_model
 from gst_jax.simulate.paper.encounters import format_encounters
-from gst_jax.simulate.paper.study import (draw_encounter_rates, run_encounter_study, step_models,
-                                          time_grid)
+from gst_jax.simulate.paper.study import (
+    draw_encounter_rates,
+    run_encounter_study,
+    step_models,
+    time_grid,
+)
 
 MEMBER = re.compile(r"n(\d+)-(partial|full)-seed(\d+)$")
 

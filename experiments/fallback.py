@@ -24,11 +24,11 @@ from pathlib import Path
 from typing import NamedTuple, Union
 
 import numpy as np
-from _common import add_results_flags, results_folder
-from strata import SCENES, records_of
 
+from _common import add_results_flags, results_folder
 from gst_jax.progress import Progress
 from gst_jax.strata import paired
+from strata import SCENES, records_of
 
 # Candidate rules: GST where a feature is "at least" or "below" a threshold.
 THRESHOLDS = {"closest": (0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0),

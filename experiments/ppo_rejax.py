@@ -33,8 +33,12 @@ from flax import serialization, struct
 
 from gst_jax.conformal import Regions
 from gst_jax.runs import load_model
-from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, CrowdNav, EnvParams,
-                                                   Observation)
+from gst_jax.simulate.crowdnav.environment import (
+    CONSTANT_VELOCITY,
+    CrowdNav,
+    EnvParams,
+    Observation,
+)
 from gst_jax.simulate.crowdnav.navigation import max_steps, navigation_measures, run_episodes
 
 if TYPE_CHECKING:                   # rejax and gymnax: the rl extra, imported where used

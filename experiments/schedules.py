@@ -26,11 +26,11 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
 from _common import RESULTS, add_results_flags, results_folder
 from _figures import schedule_against_paper
-from table1 import run_scene_seed, train_flags
-
 from gst_jax.config import SCHEDULES
+from table1 import run_scene_seed, train_flags
 
 SCENES = ("eth", "hotel", "zara1", "zara2")    # the cheap scenes: univ's 200 epochs took 6.5 h
 CANDIDATES = [("compressed", 50), ("compressed", 100), ("paper", 100)]

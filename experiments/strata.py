@@ -21,8 +21,8 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from _common import add_results_flags, results_folder
 
+from _common import add_results_flags, results_folder
 from gst_jax import data, strata
 from gst_jax.config import DataConfig
 from gst_jax.evaluation import predict_windows
@@ -79,7 +79,7 @@ def markdown(tables: dict) -> str:
              "same pedestrians (negative: GST better), with 95 % intervals over pedestrians; "
              "bin edges fixed before any result was seen. Made by "
              "`python experiments/strata.py --publish`."]
-    for name, table in tables.items():
+    for table in tables.values():
         lines += ["", f"## {table['title']}", "",
                   "| scene | pedestrians | GST ADE | CV ADE | linear ADE | GST - CV ADE | "
                   "GST - CV FDE |", "|---|---|---|---|---|---|---|"]

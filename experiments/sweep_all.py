@@ -32,14 +32,24 @@ import shutil
 from pathlib import Path
 
 import _common
-from _figures import (best_n_per_dataset, errors_against_n_per_seed, paired_gains,
-                      sparse_gain_against_density)
-from _study import (encounter_label, evaluation_file, finished_members, format_claims,
-                    judge_claims, parked_copy, record_file, train_members)
-
+from _figures import (
+    best_n_per_dataset,
+    errors_against_n_per_seed,
+    paired_gains,
+    sparse_gain_against_density,
+)
+from _study import (
+    encounter_label,
+    evaluation_file,
+    finished_members,
+    format_claims,
+    judge_claims,
+    parked_copy,
+    record_file,
+    train_members,
+)
 from gst_jax import cli, data
-from gst_jax.config import (CROWD_SCENES, DETECTION, SCHEDULES, DataConfig, ModelConfig,
-                            TrainConfig)
+from gst_jax.config import CROWD_SCENES, DETECTION, SCHEDULES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.training.members import plan_members, sweep_model_config
 from gst_jax.training.sweep import fit_sweep, format_markdown, summarize
 
@@ -139,7 +149,7 @@ def tabulate_runs(args, scene: str, data_config: DataConfig, train_config: Train
     if not records:
         return None
     if args.publish:
-        for member, record in records.items():
+        for member in records:
             if not record_file(scene, member, args.epochs).is_file():
                 shutil.copy2(evaluation_file(folder / member.name, scene, args.protocol,
                                              args.epochs), record_file(scene, member, args.epochs))

@@ -34,10 +34,17 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from _common import (PARKED, add_results_flags, evaluate, latest_checkpoint, park,
-                     results_folder, train)
-from _figures import table1_against_paper
 
+from _common import (
+    PARKED,
+    add_results_flags,
+    evaluate,
+    latest_checkpoint,
+    park,
+    results_folder,
+    train,
+)
+from _figures import table1_against_paper
 from gst_jax import data, pretrained
 from gst_jax.config import ETH_UCY_SCENES, DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import constant_velocity_baseline
@@ -180,8 +187,8 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
              "CV: constant velocity on the same pedestrians. Train time: summed epoch times "
              "(metrics.jsonl) on the machine that trained the run, per seed."
              + (" The paper did not report this protocol: its columns are its Table I (paper "
-                "split), for orientation only, not a like-for-like comparison." if protocol != "paper"
-                else ""), "",
+                "split), for orientation only, not a like-for-like comparison."
+                if protocol != "paper" else ""), "",
              f"| scene | ours AOE | ours FOE | release ± | paper AOE | paper FOE |{kde_head} "
              "CV AOE / FOE | seeds | train time | command |",
              f"|---|---|---|---|---|---|{kde_rule}---|---|---|---|"]
@@ -207,7 +214,8 @@ def markdown(rows: list[dict], output: str, protocol: str, epochs: int) -> str:
         mean = lambda k: sum(r[k] for r in rows) / len(rows)
         finished = all("aoe" in r for r in rows)
         ours = f"{mean('aoe'):.3f} | {mean('foe'):.3f}" if finished else "- | -"
-        kde = (f" {mean('kde_nll'):.2f} (paper -1.98) |" if finished else " - |") if gaussian else ""
+        kde = ((f" {mean('kde_nll'):.2f} (paper -1.98) |" if finished else " - |") if gaussian
+               else "")
         lines.append(f"| AVG | {ours} | | {mean('paper_aoe'):.2f} | {mean('paper_foe'):.2f} |{kde} "
                      f"{mean('cv_aoe'):.2f} / {mean('cv_foe'):.2f} | | | |")
         if not finished:

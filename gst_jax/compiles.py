@@ -28,8 +28,7 @@ from pathlib import Path
 from typing import Iterator
 
 import jax
-from jax._src import compilation_cache as jax_cache
-from jax._src import lru_cache
+from jax._src import compilation_cache as jax_cache, lru_cache
 from jax._src.compilation_cache_interface import CacheInterface
 
 from gst_jax.private_folders import private_folder

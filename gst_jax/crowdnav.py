@@ -50,8 +50,12 @@ import numpy as np
 from gst_jax.config import EVAL_TAU, ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.errors import DataError
-from gst_jax.interop import (check_state_dict, expected_state_dict, load_state_dict,
-                             params_from_torch)
+from gst_jax.interop import (
+    check_state_dict,
+    expected_state_dict,
+    load_state_dict,
+    params_from_torch,
+)
 from gst_jax.model import Controls, weights
 from gst_jax.rollout import rollout
 from gst_jax.safe_pickle import read_args

@@ -14,8 +14,7 @@ from pathlib import Path
 
 from gst_jax import cli
 from gst_jax.errors import RunError
-from gst_jax.evaluation import (evaluate_prediction_file, evaluate_run, format_markdown,
-                                format_table)
+from gst_jax.evaluation import evaluate_prediction_file, evaluate_run, format_markdown, format_table
 from gst_jax.io.workdir import WorkDir
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model

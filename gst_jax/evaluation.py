@@ -28,7 +28,6 @@ from gst_jax.prediction_files import PredictedBatch, read_predictions, write_pre
 from gst_jax.progress import Progress
 
 
-
 def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: ModelConfig, *,
                     num_samples: int = 20,
                     with_kde: bool = True, with_baseline: bool = True,

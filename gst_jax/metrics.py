@@ -245,7 +245,8 @@ def constant_velocity(obs_positions: np.ndarray, obs_node_mask: np.ndarray, *,
     a last displacement stay where they were last seen.
     """
     obs_positions = np.asarray(obs_positions)
-    velocity = (obs_positions[:, -1] - obs_positions[:, -2]) * np.asarray(obs_node_mask)[:, -1, :, None]
+    velocity = ((obs_positions[:, -1] - obs_positions[:, -2])
+                * np.asarray(obs_node_mask)[:, -1, :, None])
     steps = np.arange(1, pred_len + 1)[None, :, None, None]
     return obs_positions[:, -1][:, None] + steps * velocity[:, None]
 

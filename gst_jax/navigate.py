@@ -17,8 +17,13 @@ from gst_jax import cli
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.crowds import write_crowds
-from gst_jax.simulate.crowdnav.navigation import (CHUNK, PLANNERS, described_run,
-                                                  evaluate_described, summary)
+from gst_jax.simulate.crowdnav.navigation import (
+    CHUNK,
+    PLANNERS,
+    described_run,
+    evaluate_described,
+    summary,
+)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 

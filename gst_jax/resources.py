@@ -72,7 +72,7 @@ def size(num_bytes: int) -> str:
 def _address_space_left() -> tuple[int, int] | None:
     """(what `ulimit -v` (RLIMIT_AS) leaves this process, the limit); None without one."""
     try:
-        import resource                                     # POSIX only
+        import resource  # POSIX only
     except ImportError:
         return None
     limit, _ = resource.getrlimit(resource.RLIMIT_AS)

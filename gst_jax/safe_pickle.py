@@ -6,10 +6,11 @@ readers admit only the globals that such files hold and refuse anything else wit
 
 - `read_args(path) -> dict`: a pickled `argparse.Namespace` (CrowdNav++'s
   `checkpoint/args.pickle`) or dict, of plain values.
-- `read_torch(path, max_bytes)`: a `torch.save` file in its zip format (torch >= 1.6): containers and plain
-  values, `collections.OrderedDict`, tensors and parameters as numpy arrays (each a copy, with
-  its storage offset, size and stride, in this machine's byte order), torch dtypes as numpy
-  dtypes, and numpy scalars (the release's epoch metrics, pickled under numpy 1 as
+- `read_torch(path, max_bytes)`: a `torch.save` file in its zip format (torch >= 1.6):
+  containers and plain values, `collections.OrderedDict`, tensors and parameters as numpy
+  arrays (each a copy, with its storage offset, size and stride, in this machine's byte order),
+  torch dtypes as numpy dtypes, and numpy scalars (the release's epoch metrics, pickled under
+  numpy 1 as
   `numpy.core.multiarray.scalar`, which numpy 2 names `numpy._core.multiarray.scalar`).
 
 Nor can a file rewire the reader: the admitted globals refuse having their state set (pickle's

@@ -33,7 +33,6 @@ the stream's score buffer.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 import numbers
@@ -46,8 +45,8 @@ import numpy as np
 
 from gst_jax import conformal, predictors
 from gst_jax.adaptation import Adaptation
-from gst_jax.conformal import Regions
 from gst_jax.compiles import use_persistent_cache
+from gst_jax.conformal import Regions
 from gst_jax.data import SceneBatch, bucket_size
 from gst_jax.data.batching import LARGEST_COORDINATE
 from gst_jax.errors import DataError

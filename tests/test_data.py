@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gst_jax import data
-from gst_jax.config import CROWD_SCENES, DataConfig, ETH_UCY_SCENES
+from gst_jax.config import CROWD_SCENES, ETH_UCY_SCENES, DataConfig
 from gst_jax.data.stats import split_stats
 from gst_jax.data.windows import cut_windows
 from gst_jax.errors import DataError
@@ -41,7 +41,8 @@ def test_text_reader_accepts_tabs_and_spaces(tmp_path):
     ("0 1 0.0 1.0\n10 1 1.0\n", "expected 4 columns", 2),
     ("0 1 0.0 1.0\n10 1 nan 1.0\n", "x is not finite", 2),
     ("0 1 0.0 1.0\n10 1 inf 1.0\n", "x is not finite", 2),
-    ("0 1 0.0 1.0\n10 2 0.0 1.0\n0 1 5.0 5.0\n", "duplicate row for frame 0, pedestrian 1 (first at line 1)", 3),
+    ("0 1 0.0 1.0\n10 2 0.0 1.0\n0 1 5.0 5.0\n",
+     "duplicate row for frame 0, pedestrian 1 (first at line 1)", 3),
     ("0 1.5 0.0 1.0\n", "pedestrian id is not an integer", 1),
 ])
 def test_text_reader_rejects_bad_rows_naming_file_and_line(tmp_path, text, problem, line):
@@ -109,7 +110,8 @@ def test_hand_built_windows(tmp_path):
     np.testing.assert_array_equal(node_mask[:, 2], [0, 0, 0])  # no displacement yet
     second = windows[1]  # frames 10, 20, 30
     np.testing.assert_array_equal(second.position_mask[:, 1], [1, 0, 1])
-    np.testing.assert_array_equal(data.node_mask_from_positions(second.position_mask)[:, 1], [1, 0, 0])
+    np.testing.assert_array_equal(data.node_mask_from_positions(second.position_mask)[:, 1],
+                                  [1, 0, 0])
 
 
 def test_windows_list_predicted_then_observed_then_unobserved_pedestrians(tmp_path):
@@ -124,7 +126,8 @@ def test_windows_list_predicted_then_observed_then_unobserved_pedestrians(tmp_pa
     assert (window.num_predicted, window.num_observed, window.num_pedestrians) == (2, 3, 4)
     np.testing.assert_allclose(window.positions[:, 0], [[2, 0], [2, 1], [2, 2], [0, 0]])
     batch = data.pad_windows([window], 8, predicted_slots=2, observed_only=True)
-    assert batch.position_mask[0, :, :3].any(axis=0).all() and not batch.position_mask[0, :, 3:].any()
+    assert batch.position_mask[0, :, :3].any(axis=0).all()
+    assert not batch.position_mask[0, :, 3:].any()
     np.testing.assert_array_equal(batch.predicted_slots, [[1, 1]])
     with pytest.raises(ValueError, match="does not fit"):
         data.pad_windows([window], 8, predicted_slots=1)

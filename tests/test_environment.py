@@ -10,8 +10,15 @@ import pytest
 from gst_jax.conformal import Regions
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav import environment
-from gst_jax.simulate.crowdnav.environment import (COLLISION, DISCOMFORT, NOTHING, REACH_GOAL,
-                                                   TIMEOUT, CrowdNav, EnvParams)
+from gst_jax.simulate.crowdnav.environment import (
+    COLLISION,
+    DISCOMFORT,
+    NOTHING,
+    REACH_GOAL,
+    TIMEOUT,
+    CrowdNav,
+    EnvParams,
+)
 from gst_jax.stream import StreamModel
 
 ENV = CrowdNav(num_humans=4)

@@ -17,9 +17,9 @@ import pytest
 from gst_jax import pretrained
 from gst_jax.config import DataConfig, TimeGrid
 from gst_jax.data.protocols import data_files, default_data_dir, load_split
-from gst_jax.prediction_files import write_predictions
 from gst_jax.errors import DataError
 from gst_jax.model import weights
+from gst_jax.prediction_files import write_predictions
 
 
 def hostile_copy(tmp_path, **data) -> str:

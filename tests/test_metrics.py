@@ -68,7 +68,8 @@ def test_kde_nll_matches_the_gaussian_kde_formula():
     covariance = np.cov(samples.T) * len(samples) ** (-2 / 6)
     inverse, det = np.linalg.inv(covariance), np.linalg.det(covariance)
     diffs = point - samples
-    kernels = np.exp(-0.5 * np.einsum("ki,ij,kj->k", diffs, inverse, diffs)) / (2 * np.pi * np.sqrt(det))
+    kernels = (np.exp(-0.5 * np.einsum("ki,ij,kj->k", diffs, inverse, diffs))
+               / (2 * np.pi * np.sqrt(det)))
     expected = np.log(kernels.mean())
     densities = metrics.kde_log_densities(
         np.stack([samples, samples, np.ones((20, 2))], axis=1),

@@ -107,8 +107,10 @@ def test_hard_gumbel_samples_are_one_hot_with_soft_gradients():
     hard = gumbel_softmax(log_probs, noise, 0.5, hard=True)
     assert set(np.unique(hard)) <= {0.0, 1.0} and np.all(hard.sum(-1) == 1)
     weights = jnp.arange(3.0)
-    grad_hard = jax.grad(lambda lp: jnp.sum(gumbel_softmax(lp, noise, 0.5, True) * weights))(log_probs)
-    grad_soft = jax.grad(lambda lp: jnp.sum(gumbel_softmax(lp, noise, 0.5, False) * weights))(log_probs)
+    grad_hard = jax.grad(
+        lambda lp: jnp.sum(gumbel_softmax(lp, noise, 0.5, True) * weights))(log_probs)
+    grad_soft = jax.grad(
+        lambda lp: jnp.sum(gumbel_softmax(lp, noise, 0.5, False) * weights))(log_probs)
     np.testing.assert_allclose(grad_hard, grad_soft, atol=1e-6)
     assert np.abs(grad_soft).sum() > 0
 
@@ -162,8 +164,10 @@ def test_padding_leaves_real_pedestrians_unchanged(params, walk):
     order = np.arange(N)
     padded = run(params, move_batch(positions, mask, N + 3, order), move_noise(noise, N + 3, order))
     np.testing.assert_allclose(padded.displacements[:, :, :N], small.displacements, atol=1e-5)
-    np.testing.assert_allclose(padded.edge_probs[..., :N, :, :N], small.edge_probs[..., :N], atol=1e-5)
-    np.testing.assert_allclose(padded.edge_probs[..., :N, :, -1], small.edge_probs[..., -1], atol=1e-5)
+    np.testing.assert_allclose(padded.edge_probs[..., :N, :, :N], small.edge_probs[..., :N],
+                               atol=1e-5)
+    np.testing.assert_allclose(padded.edge_probs[..., :N, :, -1], small.edge_probs[..., -1],
+                               atol=1e-5)
     np.testing.assert_array_equal(padded.displacements[:, :, N:], 0.0)
 
 

@@ -13,19 +13,37 @@ import pytest
 
 from gst_jax import navigate
 from gst_jax.conformal import Regions
+from gst_jax.data.readers import read_tracks
 from gst_jax.errors import RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
-from gst_jax.data.readers import read_tracks
 from gst_jax.simulate.crowdnav import navigation
 from gst_jax.simulate.crowdnav.crowds import Condition, crowd_rows, person_ids, record_episodes
-from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, COLLISION, REACH_GOAL, TRUTH,
-                                                   SOCIAL_FORCE, SPEED_SHIFT, CrowdNav,
-                                                   EnvParams, Observation, detected_humans)
-from gst_jax.simulate.crowdnav.navigation import (described_run, episode_measures, max_steps,
-                                                  navigation_measures, paired_lines,
-                                                  per_episode, record_name, row_label,
-                                                  run_episodes, same_episodes, summary)
+from gst_jax.simulate.crowdnav.environment import (
+    COLLISION,
+    CONSTANT_VELOCITY,
+    REACH_GOAL,
+    SOCIAL_FORCE,
+    SPEED_SHIFT,
+    TRUTH,
+    CrowdNav,
+    EnvParams,
+    Observation,
+    detected_humans,
+)
+from gst_jax.simulate.crowdnav.navigation import (
+    described_run,
+    episode_measures,
+    max_steps,
+    navigation_measures,
+    paired_lines,
+    per_episode,
+    record_name,
+    row_label,
+    run_episodes,
+    same_episodes,
+    summary,
+)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.testing.drawn import gif_frames, pixels_near
 

@@ -9,8 +9,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax.simulate.agents.orca import (Lines, OrcaParams, det, new_velocity, orca_velocities,
-                                          solve_2d)
+from gst_jax.simulate.agents.orca import (
+    Lines,
+    OrcaParams,
+    det,
+    new_velocity,
+    orca_velocities,
+    solve_2d,
+)
 from gst_jax.testing import orca_reference
 
 STEP_S = 0.25

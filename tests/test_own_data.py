@@ -283,7 +283,8 @@ def test_every_command_that_takes_data_takes_columns(capsys, command):
     with pytest.raises(SystemExit) as exit_:
         importlib.import_module(name).main([*command[1:], "--help"])
     help_text = capsys.readouterr().out
-    assert exit_.value.code == 0 and "--data PATH" in help_text and "--columns F,ID,X,Y" in help_text
+    assert exit_.value.code == 0
+    assert "--data PATH" in help_text and "--columns F,ID,X,Y" in help_text
 
 
 def test_the_stats_command_reads_a_mot_file_by_column_numbers():

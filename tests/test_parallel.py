@@ -56,8 +56,9 @@ SCRIPT = textwrap.dedent("""
     step = make_train_step(config, devices=devices)
     packed = data.pack_step(windows, chosen + [len(train_set) + k for k in range(3)], 16,
                             step.slots_multiple)
+    hparams = step.place(hparams_for_epoch(config, TrainConfig(), 1))
     loss, grads = step.loss_and_grads(step.place(state.params), step.place(step_key(0, 1, 0)),
-                                      packed, step.place(hparams_for_epoch(config, TrainConfig(), 1)))
+                                      packed, hparams)
     out.update(step_loss=float(loss), step_grads=flat(grads),
                step_micro_batches=len(packed.micro_batches))
 

@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 
 import gst_jax
-from gst_jax import compiles, resources
-from gst_jax import predict as predict_module
+from gst_jax import compiles, predict as predict_module, resources
 from gst_jax.compiles import count_compiles
 from gst_jax.errors import DataError
 from gst_jax.model import Controls

@@ -19,8 +19,14 @@ from gst_jax.rollout import rollout
 from gst_jax.runs import load_model
 from gst_jax.simulate.__main__ import main as simulate_main
 from gst_jax.simulate.paper import encounters, loop
-from gst_jax.testing.drawn import (bar_heights, bar_intervals, gif_frames, line_data,
-                                   pixels_near, saved_figures)
+from gst_jax.testing.drawn import (
+    bar_heights,
+    bar_intervals,
+    gif_frames,
+    line_data,
+    pixels_near,
+    saved_figures,
+)
 
 
 @pytest.mark.parametrize("name", list(simulate.SCENARIOS))
@@ -58,7 +64,7 @@ def test_u_turn_and_freezing_detectors():
 
 
 def test_gst_drives_the_loop_without_nan():
-    config = ModelConfig(encoder_layers=1)      # depth changes nothing here; three layers compile longer
+    config = ModelConfig(encoder_layers=1)  # depth changes nothing here; three compile longer
     params = jax.jit(init_params, static_argnums=0)(config, jax.random.key(0))
     model = simulate.gst_model(params, config, Controls.make(0.03, 1, True))
     scenario = dataclasses.replace(simulate.late_crossing(), duration_s=6 * 0.4)

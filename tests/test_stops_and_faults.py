@@ -233,7 +233,9 @@ def test_a_config_that_cannot_be_written_is_one_line(tmp_path):
 
 def load_epochs(workdir: Path) -> list[int]:
     folder = workdir / "checkpoints"
-    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit()) if folder.is_dir() else []
+    if not folder.is_dir():
+        return []
+    return sorted(int(p.name) for p in folder.iterdir() if p.name.isdigit())
 
 
 # --- checkpoints that cannot be verified, or hold non-finite arrays ---

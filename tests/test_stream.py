@@ -18,12 +18,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import conformal, coverage, data, stream
+from gst_jax import conformal, coverage, data, resources, stream
 from gst_jax.compiles import count_compiles
 from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
 from gst_jax.errors import DataError
-from gst_jax import resources
 from gst_jax.predict import make_predict
 from gst_jax.runs import load_model
 from gst_jax.testing.drawn import line_data, saved_figures
@@ -167,7 +166,7 @@ def test_regions_are_issued_with_the_predictions_and_scored_k_steps_later(method
     player = stream.Stream(run, regions=regions)
     covered = scored = 0
     issued_before = {}
-    for t, (f, ids, xy) in enumerate(frames_of(tracks)):
+    for t, (_, ids, xy) in enumerate(frames_of(tracks)):
         out = player.step(ids, xy)
         assert out.radii.shape == (len(out.ids), grid.pred_len)
         assert np.all(out.radii >= 0)

@@ -9,15 +9,15 @@ import shutil
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
+
 import _common
 import _study
 import encounters as encounters_script
-import numpy as np
-import pytest
-import sweep_all
-
 import gst_jax.evaluate
 import gst_jax.train
+import sweep_all
 from gst_jax.config import Member
 from gst_jax.testing.drawn import line_data, pixels_near, saved_figures
 
@@ -36,7 +36,8 @@ def test_a_claim_holds_only_where_two_thirds_of_its_pairs_and_every_mean_favour_
         _member(4, False, 2, 1.05), _member(4, True, 2, 1.0)],
         "table": [{"cv_aoe": 0.8, "cv_foe": 1.6}]}]
     encounters = {"scene": "eth", "pairs": [
-        {"sparse": "n=4 partial 1", "full": "n=F partial 1", "freezing_difference": [-.2, -.3, -.1]},
+        {"sparse": "n=4 partial 1", "full": "n=F partial 1",
+         "freezing_difference": [-.2, -.3, -.1]},
         {"sparse": "n=4 partial 2", "full": "n=F partial 2", "freezing_difference": [.1, 0, .2]}],
         "models": {"constant velocity": {"freezing_or_u_turn": [0, 0, .01],
                                          "collided": [.5, .4, .6]}}}

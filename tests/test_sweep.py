@@ -19,12 +19,16 @@ from gst_jax.model import Controls
 from gst_jax.progress import Progress
 from gst_jax.rollout import rollout
 from gst_jax.runs import load_member
-from gst_jax.testing.drawn import (bar_heights, colour_pixels, errorbar_data, line_data,
-                                   saved_figures)
+from gst_jax.testing.drawn import (
+    bar_heights,
+    colour_pixels,
+    errorbar_data,
+    line_data,
+    saved_figures,
+)
 from gst_jax.training import members as sweep_members, sweep
 from gst_jax.training.state import create_train_state, hparams_for_epoch
 from gst_jax.training.step import make_train_step
-
 
 # The members' programs (compiled by these tests only) compile in half the time with one
 # encoder layer; how members are vmapped or looped does not depend on the depth.
@@ -152,7 +156,7 @@ def _fake_evaluations(aoe_by_member: dict) -> tuple[list, list]:
 
 def test_summary_quantities_and_cross_dataset_figures(tmp_path):
     """Best n, sparse-vs-full and partial-vs-full improvements from hand-made AOEs."""
-    import _figures as figures        # experiments/_figures.py
+    import _figures as figures  # experiments/_figures.py
 
     M = Member
     all_results = []
@@ -170,7 +174,8 @@ def test_summary_quantities_and_cross_dataset_figures(tmp_path):
     cell = {(r["edge_heads"], r["detection"]): r for r in zara1["table"]}
     assert cell[(0, "partial")]["aoe"] == 0.6 and abs(cell[(0, "partial")]["aoe_std"] - 0.1) < 1e-12
     assert zara1["best_n_partial"] == 4
-    assert abs(zara1["sparse_vs_full_connection_partial"]["aoe_pct"] - 100 * (0.6 - 0.4) / 0.6) < 1e-9
+    sparse_vs_full = zara1["sparse_vs_full_connection_partial"]["aoe_pct"]
+    assert abs(sparse_vs_full - 100 * (0.6 - 0.4) / 0.6) < 1e-9
     assert abs(zara1["partial_vs_fully_detected"]["4"]["aoe_pct"] - 100 * (0.5 - 0.4) / 0.5) < 1e-9
     assert zara1["density"] >= 0
     markdown = sweep.format_markdown(zara1).splitlines()

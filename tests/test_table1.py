@@ -9,13 +9,13 @@ import json
 import shutil
 from pathlib import Path
 
-import _common
-import crowd
 import numpy as np
 import pytest
+
+import _common
+import crowd
 import schedules
 import table1
-
 from gst_jax.io.checkpoints import Checkpointer
 from gst_jax.io.workdir import WorkDir
 from gst_jax.testing.drawn import bar_heights, colour_pixels, pixels_near, saved_figures
@@ -58,14 +58,15 @@ def test_rows_average_seeds_fall_back_to_shipped_models_and_never_fill_in(tmp_pa
                           / "meta.json").read_text())["test_metrics"]
     assert eth["seeds"] == [1000] and eth["aoe"] == shipped["aoe"]
     assert eth["aoe_spread"] == shipped["aoe_std"] and eth["spread_over"] == "20 runs"
-    assert "aoe" not in univ                                       # nothing trained, nothing shipped
+    assert "aoe" not in univ                                     # nothing trained, nothing shipped
     table = (tmp_path / "out" / "table1.md").read_text()
     # Constant velocity is computed from the test split for every scene, finished or not; on
     # eth it is what evaluate_params recorded beside the shipped model.
     assert (eth["cv_aoe"], eth["cv_foe"]) == pytest.approx((shipped["cv_aoe"], shipped["cv_foe"]))
     assert "| univ | missing | missing | - | 0.50 | 1.08 | 0.52 / 1.16 |" in table
     # The release's spread statistic: the mean of the seeds' (0.10 and 0.15 for AOE).
-    assert "| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.125 / 0.250 | 0.21 | 0.38 | 0.34 / 0.63 |" in table
+    assert ("| hotel | 0.250 ± 0.050 | 0.500 ± 0.100 | 0.125 / 0.250 | 0.21 | 0.38 | "
+            "0.34 / 0.63 |") in table
     release = ("-" if "release_aoe_std" not in shipped       # recorded before it existed
                else f"{shipped['release_aoe_std']:.3f} / {shipped['release_foe_std']:.3f}")
     assert (f"| eth | {shipped['aoe']:.3f} ± {shipped['aoe_std']:.3f} | {shipped['foe']:.3f} ± "
@@ -95,8 +96,10 @@ def test_gaussian_table_has_kde_nll_and_averages_all_five_scenes(tmp_path):
     table1.main([*_isolated(tmp_path), "--output", "gaussian", "--runs", str(tmp_path / "runs"),
                  "--workdir", str(tmp_path / "out")])
     table = (tmp_path / "out" / "table1_p.md").read_text()
-    assert "| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 0.050 / 0.100 | 1.10 | 2.22 | -0.10 | 0.97 / 2.12 |" in table
-    assert "| AVG | 0.300 | 0.600 | | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.51 / 1.10 | | | |" in table
+    assert ("| eth | 0.100 ± 0.010 | 0.200 ± 0.020 | 0.050 / 0.100 | 1.10 | 2.22 | -0.10 | "
+            "0.97 / 2.12 |") in table
+    assert ("| AVG | 0.300 | 0.600 | | 0.60 | 1.20 | -0.30 (paper -1.98) | 0.51 / 1.10 | | | "
+            "|") in table
 
 
 def test_leave_one_scene_out_table_without_runs_shows_the_baseline_and_no_average_of_ours(

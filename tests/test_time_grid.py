@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from gst_jax import evaluate, plot, train
-from gst_jax.predict.__main__ import main as predict_main
 from gst_jax.config import DataConfig, TimeGrid
 from gst_jax.data import load_split
+from gst_jax.predict.__main__ import main as predict_main
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowds import CrowdConfig, crowd_rows, simulate_crowd
 from gst_jax.testing.drawn import line_data, saved_figures

@@ -282,7 +282,8 @@ def test_resume_after_sigkill_matches_uninterrupted_run_and_evaluates(tmp_path, 
     assert run.epoch == uninterrupted.epoch == 3
     for x, y in zip(jax.tree.leaves(run.params), jax.tree.leaves(uninterrupted.params)):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
-    epochs = [json.loads(l)["epoch"] for l in (tmp_path / "resumed" / "metrics.jsonl").read_text().splitlines()]
+    metrics = (tmp_path / "resumed" / "metrics.jsonl").read_text().splitlines()
+    epochs = [json.loads(line)["epoch"] for line in metrics]
     assert epochs == [1, 2, 3]
 
     evaluated = subprocess.run(

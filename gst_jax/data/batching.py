@@ -192,9 +192,10 @@ def make_batch(observed_xy: np.ndarray, *, grid: TimeGrid = TimeGrid(),
     """A prediction batch from observations (B, T_obs, N, 2), NaN where nobody was detected.
 
     This is the robot's use: feed the last T_obs = `grid.obs_len` tracked positions (one model
-    step apart, metres in a local frame) of everyone in view; `grid` is the model's. With `pad_to_bucket` the pedestrian axis is
-    padded (with undetected slots) to the next bucket size, so a planner whose crowd changes
-    size reuses a few compiled programs; pedestrian k keeps slot k.
+    step apart, metres in a local frame) of everyone in view; `grid` is the model's. With
+    `pad_to_bucket` the pedestrian axis is padded (with undetected slots) to the next bucket
+    size, so a planner whose crowd changes size reuses a few compiled programs; pedestrian k
+    keeps slot k.
     """
     xy = np.asarray(observed_xy, dtype=np.float64)
     if xy.ndim != 4 or xy.shape[-1] != 2:

@@ -19,8 +19,16 @@ import os
 import re
 from pathlib import Path
 
-from gst_jax.config import (CROWD, CROWD_SCENES, ETH_UCY_SCENES, PROTOCOLS, SCENES,
-                            TRAJNET_SCENES, DataConfig, TimeGrid)
+from gst_jax.config import (
+    CROWD,
+    CROWD_SCENES,
+    ETH_UCY_SCENES,
+    PROTOCOLS,
+    SCENES,
+    TRAJNET_SCENES,
+    DataConfig,
+    TimeGrid,
+)
 from gst_jax.data.checks import check_speeds, longest_track
 from gst_jax.data.readers import Tracks, read_tracks, to_model_rate
 from gst_jax.data.windows import Window, WindowSet, cut_windows, kept

@@ -51,7 +51,8 @@ class Window:
     @property
     def frame_range(self) -> tuple[int, int]:
         """(first, last) frame id covered by the window's time grid."""
-        return self.start_frame, self.start_frame + (self.position_mask.shape[0] - 1) * self.frame_step
+        last = self.start_frame + (self.position_mask.shape[0] - 1) * self.frame_step
+        return self.start_frame, last
 
     @property
     def num_observed(self) -> int:

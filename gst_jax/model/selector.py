@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax.config import ModelConfig
-from gst_jax.graph import ATTENTION_WEIGHTS, masked_categorical, EPS
+from gst_jax.graph import ATTENTION_WEIGHTS, EPS, masked_categorical
 from gst_jax.gumbel import gumbel_softmax
 from gst_jax.model.controls import Controls
 from gst_jax.model.layers import Dropout, LayerNormParams, layer_norm, torch_uniform
@@ -61,7 +61,8 @@ def with_ghost(candidates: jax.Array, num_nodes: int) -> jax.Array:
 
 
 def gather_neighbours(per_neighbour: jax.Array, neighbours: jax.Array) -> jax.Array:
-    """Each target's own rows: per_neighbour (..., L, F), neighbours (..., N, K) -> (..., N, K, F)."""
+    """Each target's own rows: per_neighbour (..., L, F), neighbours (..., N, K)
+    -> (..., N, K, F)."""
     return jnp.take_along_axis(per_neighbour[..., None, :, :], neighbours[..., None], axis=-2,
                                mode="clip")
 
@@ -71,8 +72,8 @@ def scatter_neighbours(per_candidate: jax.Array, candidates: jax.Array,
     """(..., K+1) values of each target's candidates then the ghost -> (..., N+1) over every
     neighbour (ghost last), zero outside the candidates. candidates (..., K) broadcasts
     against per_candidate's leading axes."""
-    slots = with_ghost(jnp.broadcast_to(candidates, per_candidate.shape[:-1] + candidates.shape[-1:]),
-                       num_nodes)
+    slots = with_ghost(
+        jnp.broadcast_to(candidates, per_candidate.shape[:-1] + candidates.shape[-1:]), num_nodes)
     every = jnp.zeros(per_candidate.shape[:-1] + (num_nodes + 1,), per_candidate.dtype)
     return jnp.put_along_axis(every, slots, per_candidate, axis=-1, inplace=False)
 
@@ -83,7 +84,8 @@ def group_to_head(num_groups: int, num_edge_heads: jax.Array) -> jax.Array:
     group = jnp.arange(num_groups)
     head = jnp.arange(num_groups)
     owner = group // groups_per_head
-    return ((owner[:, None] == head[None, :]) & (head[None, :] < num_edge_heads)).astype(jnp.float32)
+    owned = (owner[:, None] == head[None, :]) & (head[None, :] < num_edge_heads)
+    return owned.astype(jnp.float32)
 
 
 def block_diagonal(weight: jax.Array, head_dim: jax.Array) -> jax.Array:
@@ -120,7 +122,8 @@ class EdgeSelector(nn.Module):
         self.dropout = Dropout(config.dropout, ghost_axis=-2)      # (..., N, L, W)
 
     def edge_coefficients(self, a: jax.Array, valid: jax.Array,
-                          edge_embedding: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+                          edge_embedding: tuple[jax.Array, jax.Array],
+                          ) -> tuple[jax.Array, jax.Array]:
         """a_ij LayerNorm(phi_e(A[j, i])) W_c per target i and neighbour j, as c_ij @ basis.
 
         a (..., N, M, 2): A[j, i] indexed [i, j] over M neighbours (all N, or each target's
@@ -176,9 +179,9 @@ class EdgeSelector(nn.Module):
         if candidates is not None:
             # Only the candidates are neighbours: every per-edge array is gathered per target,
             # and the neighbour axis L below is each target's K candidates and the ghost.
-            a = jnp.take_along_axis(a, candidates[..., None], axis=-2, mode="clip")  # (..., N, K, 2)
-            valid = jnp.take_along_axis(valid, candidates, axis=-1, mode="clip")     # (..., N, K)
-        valid_edges = jnp.concatenate([valid, ghost_column[..., None]], axis=-1)  # a'_ij (..., N, L)
+            a = jnp.take_along_axis(a, candidates[..., None], axis=-2, mode="clip")  # (.., N, K, 2)
+            valid = jnp.take_along_axis(valid, candidates, axis=-1, mode="clip")     # (.., N, K)
+        valid_edges = jnp.concatenate([valid, ghost_column[..., None]], axis=-1)  # a'_ij (.., N, L)
 
         # [x_j | x_i | e_ji] W = x_j W_a + (x_i W_b + bias) + c_ij @ basis: a per-neighbour
         # part P_j, and per target i an affine combination of R = 5 vectors B_i with the edge
@@ -230,10 +233,12 @@ class EdgeSelector(nn.Module):
             # target (and sample): contracted with the shared parts in one product for all edges.
             own_values = grouped(target_part)[2]                                 # (..., N, G, w)
             shared_values = grouped(edge_basis)[2]                               # (R - 1, G, w)
-            own_weights = jnp.swapaxes(mixed_coefficients[..., 0], -1, -2)[..., None]  # (..., N, L, G, 1)
+            # (..., N, L, G, 1)
+            own_weights = jnp.swapaxes(mixed_coefficients[..., 0], -1, -2)[..., None]
             hidden = (jnp.einsum("...iglm,...mgc->...ilgc", group_weights, pv)
                       + own_weights * own_values[..., None, :, :]
-                      + jnp.einsum("...gls,sgc->...lgc", mixed_coefficients[..., 1:], shared_values))
+                      + jnp.einsum("...gls,sgc->...lgc", mixed_coefficients[..., 1:],
+                                   shared_values))
         hidden = hidden.reshape(hidden.shape[:-2] + (width,))                    # (..., N, L, W)
 
         within = jnp.arange(width) % head_dim
@@ -246,8 +251,8 @@ class EdgeSelector(nn.Module):
         contributions = hidden @ output_by_group                                 # (..., N, L, G)
         logits = jnp.einsum("...lg,gh->...hl", contributions, heads) + self.mlp_out_bias
 
-        edge_probs = masked_categorical(logits, valid_edges[..., None, :], config.attention) * _active_heads(
-            controls, num_groups)
+        edge_probs = (masked_categorical(logits, valid_edges[..., None, :], config.attention)
+                      * _active_heads(controls, num_groups))
         if candidates is None:
             return edge_probs
         return scatter_neighbours(edge_probs, candidates[..., None, :], x.shape[-2])
@@ -268,7 +273,8 @@ def head_totals(per_group: jax.Array, num_edge_heads: jax.Array, axis: int) -> j
     groups_per_head = num_groups // jnp.maximum(num_edge_heads, 1)
     total, stride = per_group, 1
     while stride < num_groups:
-        blocks = total.shape[:axis] + (num_groups // (2 * stride), 2, stride) + total.shape[axis + 1:]
+        blocks = (total.shape[:axis] + (num_groups // (2 * stride), 2, stride)
+                  + total.shape[axis + 1:])
         partner = jnp.flip(total.reshape(blocks), axis=axis + 1).reshape(total.shape)
         total = total + jnp.where(stride < groups_per_head, partner, 0.0)
         stride *= 2
@@ -321,8 +327,8 @@ def _candidate_hidden(node, target, shared, c: jax.Array, valid_edges: jax.Array
     pairs = neighbours[..., :, None] * num_neighbours + neighbours[..., None, :]
     node_scores = jnp.take_along_axis(
         gram.reshape(gram.shape[:-2] + (-1,))[..., None, :, :],
-        pairs.reshape(pairs.shape[:-2] + (1, -1)), axis=-1, mode="clip").reshape(pairs.shape[:-2] + (
-            gram.shape[-3],) + pairs.shape[-2:])                                 # (..., N, G, L, L)
+        pairs.reshape(pairs.shape[:-2] + (1, -1)), axis=-1, mode="clip").reshape(
+            pairs.shape[:-2] + (gram.shape[-3],) + pairs.shape[-2:])            # (..., N, G, L, L)
     pq_bk = jnp.concatenate([
         by_neighbour(jnp.einsum("...lgc,...igc->...igl", pq, tk))[..., None],
         per_target(jnp.einsum("...lgc,sgc->...lgs", pq, ek))], axis=-1)        # (..., N, G, L, R)
@@ -335,7 +341,7 @@ def _candidate_hidden(node, target, shared, c: jax.Array, valid_edges: jax.Array
     others = jnp.concatenate([
         jnp.einsum("rgc,...igc->...igr", eq, tk)[..., None],
         jnp.broadcast_to(jnp.einsum("rgc,sgc->grs", eq, ek), own.shape[:-1] + eq.shape[:1]
-                         + ek.shape[:1])], axis=-1)                              # (..., N, G, R-1, R)
+                         + ek.shape[:1])], axis=-1)                             # (.., N, G, R-1, R)
     bq_bk = jnp.concatenate([own[..., None, :], others], axis=-2)               # (..., N, G, R, R)
     c = c[..., None, :, :]                                                       # (..., N, 1, L, R)
     by_target = pq_bk + jnp.einsum("...glr,...grs->...gls", c, bq_bk)

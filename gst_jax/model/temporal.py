@@ -14,7 +14,8 @@ from gst_jax.model.layers import Dropout, layer_norm, torch_dense, torch_uniform
 
 
 class TemporalConvReadout(nn.Module):
-    """Residual time convolutions, then time and feature MLPs: (..., T_obs, N, d) -> (..., P, N, out).
+    """Residual time convolutions, then time and feature MLPs:
+    (..., T_obs, N, d) -> (..., P, N, out).
 
     Each of `num_convs` blocks adds relu(conv_t(LayerNorm(x))) to x, a kernel-3 convolution
     along time only (pedestrians never mix). Time is then mapped T_obs -> P -> P and features

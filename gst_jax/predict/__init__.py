@@ -39,10 +39,16 @@ from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.model import Controls
 from gst_jax.predict import chunking as _chunking
-from gst_jax.predict.checks import (CANDIDATES_PAY_ABOVE, COMPILER_BYTES,
-                                    CPU_OPERATIONS_PER_CORE_SECOND, LONG_CALL_S,
-                                    SUGGESTED_CANDIDATES, check_compiler_room, compile_checked,
-                                    crowd_notice)
+from gst_jax.predict.checks import (
+    CANDIDATES_PAY_ABOVE,
+    COMPILER_BYTES,
+    CPU_OPERATIONS_PER_CORE_SECOND,
+    LONG_CALL_S,
+    SUGGESTED_CANDIDATES,
+    check_compiler_room,
+    compile_checked,
+    crowd_notice,
+)
 from gst_jax.predict.chunking import CHUNKING_SLACK, DEFAULT_MEMORY_BUDGET, Chunking
 from gst_jax.predict.cost import CPU_RUNTIME_MARGIN, Estimate, devices_of, estimate, operation_count
 from gst_jax.resources import CGROUP_ROOT, NO_LIMIT, available_memory, cgroup_headroom

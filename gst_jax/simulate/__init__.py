@@ -14,10 +14,19 @@ Here: the paper's loop, its scenarios and measures.
 
 from gst_jax.simulate.agents.predicted import StepModel, constant_velocity_model, gst_model
 from gst_jax.simulate.paper.loop import MODEL_HUMANS, ORCA_HUMANS, simulate
-from gst_jax.simulate.paper.measures import (ROBOT_COLLISION_DISTANCE, freezing_or_u_turn,
-                                             robot_measures)
-from gst_jax.simulate.paper.scenarios import (SCENARIOS, Scenario, boundary_wanderers,
-                                              intersection, late_crossing, oncoming_group)
+from gst_jax.simulate.paper.measures import (
+                                             ROBOT_COLLISION_DISTANCE,
+                                             freezing_or_u_turn,
+                                             robot_measures,
+)
+from gst_jax.simulate.paper.scenarios import (
+                                             SCENARIOS,
+                                             Scenario,
+                                             boundary_wanderers,
+                                             intersection,
+                                             late_crossing,
+                                             oncoming_group,
+)
 
 __all__ = ["MODEL_HUMANS", "ORCA_HUMANS", "ROBOT_COLLISION_DISTANCE", "SCENARIOS", "Scenario",
            "StepModel", "boundary_wanderers", "constant_velocity_model", "freezing_or_u_turn",

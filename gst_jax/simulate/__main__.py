@@ -19,8 +19,13 @@ from gst_jax.runs import load_model
 from gst_jax.simulate.paper.encounters import format_encounters
 from gst_jax.simulate.paper.loop import MODEL_HUMANS, ORCA_HUMANS
 from gst_jax.simulate.paper.scenarios import SCENARIOS
-from gst_jax.simulate.paper.study import (format_markdown, run_encounter_study, run_scenarios,
-                                          step_models, time_grid)
+from gst_jax.simulate.paper.study import (
+    format_markdown,
+    run_encounter_study,
+    run_scenarios,
+    step_models,
+    time_grid,
+)
 
 
 def main(argv: list[str] | None = None) -> None:

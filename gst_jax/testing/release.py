@@ -33,7 +33,8 @@ def batch_loss(config: ModelConfig, output: RolloutOutput, batch: SceneBatch) ->
 
 
 def batch_from_reference_inputs(inputs: Mapping[str, np.ndarray]) -> SceneBatch:
-    """One-scene SceneBatch from the release's `obs_traj`/`pred_traj` (1, N, 2, T), -999 = missing."""
+    """One-scene SceneBatch from the release's `obs_traj`/`pred_traj` (1, N, 2, T),
+    -999 = missing."""
     trajectory = np.concatenate([inputs["obs_traj"], inputs["pred_traj"]], axis=-1)[0]
     positions = np.transpose(trajectory, (2, 0, 1)).astype(np.float32)        # (T, N, 2)
     position_mask = np.all(positions != MISSING, axis=-1).astype(np.float32)

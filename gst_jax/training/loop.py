@@ -42,8 +42,15 @@ from gst_jax.progress import Progress, StepClock
 from gst_jax.runs import load_model
 from gst_jax.training.persistence import EpochSoFar, Saves, resume
 from gst_jax.training.selection import Selection, check_same_layout, fine_tuning_state
-from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
-                                    parameter_key, step_key, validation_key)
+from gst_jax.training.state import (
+    HParams,
+    TrainState,
+    create_train_state,
+    hparams_for_epoch,
+    parameter_key,
+    step_key,
+    validation_key,
+)
 from gst_jax.training.step import TrainStep, make_train_step
 
 
@@ -139,7 +146,8 @@ def train_epochs(training: Training, workdir: WorkDir, config: dict, train_set: 
                             f"(loss {loss[0]}); parameters of the last checkpoint (epoch "
                             f"{saves.epochs.latest_epoch}) are kept in "
                             f"{workdir.path}/checkpoints")
-                    epoch_so_far.loss_sum += np.where(np.isfinite(loss), loss, 0.0) * packed.num_scenes
+                    epoch_so_far.loss_sum += (np.where(np.isfinite(loss), loss, 0.0)
+                                              * packed.num_scenes)
                     epoch_so_far.non_finite += ~finite
                     epoch_so_far.scenes += packed.num_scenes
                     epoch_so_far.steps_done = step + 1

@@ -22,9 +22,7 @@ from gst_jax.io.workdir import WorkDir
 from gst_jax.parallel import Devices
 from gst_jax.predict import make_predict
 from gst_jax.runs import Run
-from gst_jax.training.state import (TrainState, abstract_train_state, make_optimizer,
-                                    validation_key)
-
+from gst_jax.training.state import TrainState, abstract_train_state, make_optimizer, validation_key
 
 # Samples per validation window when a fine-tuning selects its epoch: the paper's 20 runs.
 SELECTION_SAMPLES = 20

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from gst_jax import data, figures
-from gst_jax.config import DataConfig, EVAL_TAU, Member, ModelConfig, TrainConfig
+from gst_jax.config import EVAL_TAU, DataConfig, Member, ModelConfig, TrainConfig
 from gst_jax.errors import RunError
 from gst_jax.evaluation import evaluate_params
 from gst_jax.io.workdir import WorkDir, run_config
@@ -32,8 +32,13 @@ from gst_jax.predict import make_predict
 from gst_jax.progress import Progress
 from gst_jax.training.loop import Training, load_train_set, train_epochs
 from gst_jax.training.members import member_config, stack, unstack
-from gst_jax.training.state import (HParams, TrainState, create_train_state, hparams_for_epoch,
-                                    parameter_key)
+from gst_jax.training.state import (
+    HParams,
+    TrainState,
+    create_train_state,
+    hparams_for_epoch,
+    parameter_key,
+)
 from gst_jax.training.step import make_train_step
 
 

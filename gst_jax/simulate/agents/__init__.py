@@ -5,8 +5,12 @@
     predicted.py  agents moved by a trajectory predictor's first step (constant velocity, GST)
 """
 
-from gst_jax.simulate.agents.motion import (SocialForce, holonomic, social_force_velocities,
-                                            toward_goal)
+from gst_jax.simulate.agents.motion import (
+                                            SocialForce,
+                                            holonomic,
+                                            social_force_velocities,
+                                            toward_goal,
+)
 from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
 from gst_jax.simulate.agents.predicted import StepModel, constant_velocity_model, gst_model
 

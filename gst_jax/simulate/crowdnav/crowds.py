@@ -25,9 +25,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from gst_jax.progress import Progress
-from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, NO_SHIFT, ORCA,
-                                                   POLICY_SHIFT, SOCIAL_FORCE, SPEED_SHIFT,
-                                                   CrowdNav, EnvParams, detected_humans)
+from gst_jax.simulate.crowdnav.environment import (
+    CONSTANT_VELOCITY,
+    NO_SHIFT,
+    ORCA,
+    POLICY_SHIFT,
+    SOCIAL_FORCE,
+    SPEED_SHIFT,
+    CrowdNav,
+    EnvParams,
+    detected_humans,
+)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 

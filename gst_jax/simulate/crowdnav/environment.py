@@ -71,12 +71,12 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax import conformal
+from gst_jax.adaptation import Adaptation
 from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
+from gst_jax.predictors import GST, ConstantVelocity, Predictor, Standing, Truth
 from gst_jax.simulate.agents import motion
 from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
-from gst_jax.adaptation import Adaptation
-from gst_jax.predictors import GST, ConstantVelocity, Predictor, Standing, Truth
 from gst_jax.stream import StreamState, adapt, init_state, update_regions
 
 # Outcomes of a step (info["outcome"]), CrowdNav++'s info classes.

@@ -28,9 +28,19 @@ from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
 from gst_jax.paired import paired_means, paired_rates
 from gst_jax.progress import Progress
-from gst_jax.simulate.crowdnav.environment import (COLLISION, CONSTANT_VELOCITY, NO_SHIFT,
-                                                   POLICY_SHIFT, REACH_GOAL, STANDING, TIMEOUT,
-                                                   TRUTH, CrowdNav, EnvParams, Observation)
+from gst_jax.simulate.crowdnav.environment import (
+    COLLISION,
+    CONSTANT_VELOCITY,
+    NO_SHIFT,
+    POLICY_SHIFT,
+    REACH_GOAL,
+    STANDING,
+    TIMEOUT,
+    TRUTH,
+    CrowdNav,
+    EnvParams,
+    Observation,
+)
 from gst_jax.simulate.crowdnav.figures import animate_navigation
 from gst_jax.simulate.crowdnav.planner import DecisionCalibration, PlannerState, SamplingMPC
 

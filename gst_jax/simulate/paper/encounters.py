@@ -2,9 +2,9 @@
 in one jitted, vmapped program, and whether the robot freezes.
 
 Every episode (14 s): the robot starts at (0, 0) walking at 1.2 m/s towards its goal
-(12, 0), 10 s away at that speed (its history is that straight line); a group of k = 2..10 people (uniform) meets its path at a
-point m = (U(4, 8), U(-1, 1)) m about when the robot gets there (within U(-1, 1) s), in one
-of the paper's four kinds of encounter (Fig. 5 a-d, uniform):
+(12, 0), 10 s away at that speed (its history is that straight line); a group of k = 2..10
+people (uniform) meets its path at a point m = (U(4, 8), U(-1, 1)) m about when the robot gets
+there (within U(-1, 1) s), in one of the paper's four kinds of encounter (Fig. 5 a-d, uniform):
 
 - crossing: the group walks across the path at U(45, 135) degrees, from either side;
 - late: the same, but the whole group is detected only U(1, 3) s after the start (a);

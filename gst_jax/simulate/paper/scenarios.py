@@ -50,7 +50,8 @@ def boundary_wanderers(grid: TimeGrid = TimeGrid(), num_wanderers: int = 6, spee
     rng = np.random.default_rng(seed)
     angles = np.linspace(0, 2 * np.pi, num_wanderers, endpoint=False)
     ring = 6.0 + np.stack([7 * np.cos(angles), 7 * np.sin(angles)], -1)
-    tangent = 0.5 * np.stack([-np.sin(angles), np.cos(angles)], -1) + rng.normal(0, 0.05, (num_wanderers, 2))
+    tangent = (0.5 * np.stack([-np.sin(angles), np.cos(angles)], -1)
+               + rng.normal(0, 0.05, (num_wanderers, 2)))
     start = np.concatenate([[[0.0, 0.0], [12.0, 0.0]], ring])
     velocity = np.concatenate([[[speed, 0.0], [-speed, 0.0]], tangent])
     return Scenario("b_boundary_wanderers", start, velocity, np.zeros(len(start), int),

@@ -17,8 +17,12 @@ from gst_jax.model import Controls
 from gst_jax.progress import Progress
 from gst_jax.runs import Run
 from gst_jax.simulate.agents.predicted import StepModel, constant_velocity_model, gst_model
-from gst_jax.simulate.paper.encounters import (episode_measures, run_encounters, sample_encounters,
-                                               summarize)
+from gst_jax.simulate.paper.encounters import (
+    episode_measures,
+    run_encounters,
+    sample_encounters,
+    summarize,
+)
 from gst_jax.simulate.paper.figures import animate_run, encounter_rates, plot_run
 from gst_jax.simulate.paper.loop import MODEL_HUMANS, simulate
 from gst_jax.simulate.paper.measures import robot_measures
