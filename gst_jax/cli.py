@@ -1,6 +1,8 @@
 """What every command shares: the flags (`--scene`, `--protocol`, `--edge-heads`, `--epochs`,
 `--seed`, `--workdir`, `--json`, ...), so that each means the same thing everywhere; their
-typed configs; and `run`, which turns the library's errors into one-line messages.
+typed configs; and `run`, which turns the library's errors into one-line messages. A flag that
+sets a config field takes its type, range or choices and its help from that field's rule
+(`gst_jax.config.Rule`, through `add_field_flag`), the rule config.json's checks read too.
 
 One job, though over 400 lines: the shared flags, each with its parser, its help and the config
 field it becomes, in one place, so that a flag means one thing in every command."""
@@ -16,9 +18,18 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from gst_jax.config import (ATTENTION_KINDS, DETECTION, EDGE_HEAD_CHOICES, FINE_TUNING,
-                            PROTOCOLS, SCENES, SCHEDULES, TEMPORAL_MODELS, DataConfig,
-                            ModelConfig, TimeGrid, TrainConfig)
+from gst_jax.config import (
+    DETECTION,
+    EDGE_HEAD_CHOICES,
+    FINE_TUNING,
+    SCENES,
+    DataConfig,
+    ModelConfig,
+    TimeGrid,
+    TrainConfig,
+    describe,
+    rules,
+)
 from gst_jax.data import data_name
 from gst_jax.data.protocols import bundled_or_local
 from gst_jax.data.readers import UNITS, parse_columns
@@ -41,9 +52,53 @@ def positive_int(text: str) -> int:
     return value
 
 
+# A flag's Action (`add_field_flag`) or type (`field_type`) names the config field it sets
+# here: (config class, field name).
+FIELD = "config_field"
+
+
+def field_type(config_class, name: str) -> Callable[[str], object]:
+    """An argparse type for a config field: the text read as the field's kind and held to its
+    rule (`gst_jax.config.Rule`), refused in the rule's words ("must be at least 1, got 0")."""
+    rule = rules(config_class)[name]
+    read = {int: int, float: float, str: str}[rule.kind]
+
+    def checked(text: str):
+        value = read(text)
+        if (refused := rule.refusal(value, text)) is not None:
+            raise argparse.ArgumentTypeError(refused)
+        return value
+    checked.__name__ = read.__name__                 # argparse: "invalid int value: 'x'"
+    setattr(checked, FIELD, (config_class, name))
+    return checked
+
+
+def add_field_flag(group, flag: str, config_class, name: str, *, default,
+                   default_says: str | None = None, also: str = "", **options):
+    """A flag that sets the config field `config_class.name`: its type and range or choices,
+    and its help, from the field's rule (`also`: words the flag adds, e.g. how it differs);
+    `default_says`: what the flag's default means where neither it nor the rule's says it.
+    `options` go to argparse (an action, a metavar, or a type or choices narrower than the
+    field's, checked by tests/test_config.py to lie within it). Returns the Action."""
+    rule = rules(config_class)[name]
+    help, rule_says = describe(config_class, name)
+    if options.get("action") not in ("store_true", "store_false"):
+        if rule.choices is not None:
+            options.setdefault("choices", rule.choices)
+        elif rule.kind is not str:
+            options.setdefault("type", field_type(config_class, name))
+    switch = options.get("action") in ("store_true", "store_false")
+    said = default_says or rule_says or (None if default is None or switch else f"{default}")
+    help += also + (f" (default: {said})" if said is not None else "")
+    action = group.add_argument(flag, default=default, help=help, **options)
+    setattr(action, FIELD, (config_class, name))
+    return action
+
+
 def node_width(text: str) -> int:
-    """An argparse type: a node width that the encoder's heads divide."""
-    value, heads = positive_int(text), ModelConfig.encoder_heads
+    """An argparse type: a node width (`ModelConfig.node_dim`) that the encoder's heads
+    divide."""
+    value, heads = field_type(ModelConfig, "node_dim")(text), ModelConfig.encoder_heads
     if value % heads:
         raise argparse.ArgumentTypeError(f"must be a multiple of {heads} (the encoder's heads), "
                                          f"got {value}")
@@ -171,44 +226,30 @@ def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False,
     default = "the run's own" if of_run else None
     protocol_default = default or "paper" + (
         f"; {FINE_TUNING['protocol']} when fine-tuning with --init" if fine_tuning else "")
-    group.add_argument("--scene", default=None if of_run else "eth", choices=SCENES,
-                       help="dataset: an ETH/UCY scene, a TrajNet++ crowd, or crowd: all "
-                            f"seven, each file split as in its scene (default: {default or 'eth'})")
-    group.add_argument("--protocol", default=None if of_run or fine_tuning else "paper",
-                       choices=PROTOCOLS,
-                       help="paper: the release's per-file temporal 80/20 split; paper-val: the "
-                            "same with a validation set carved from the end of each file's "
-                            "train windows; loo: leave-one-scene-out (ETH/UCY only) "
-                            f"(default: {protocol_default})")
-    group.add_argument("--data-dir", default=None,
-                       help="folder holding eth_ucy/ and trajnetpp/ (default: "
-                            f"{default or 'the bundled data/'})")
+    # --scene names a bundled scene (SCENES, each a scene name the field takes); your own
+    # data's name comes from --data.
+    add_field_flag(group, "--scene", DataConfig, "scene", default=None if of_run else "eth",
+                   choices=SCENES, default_says=default)
+    add_field_flag(group, "--protocol", DataConfig, "protocol",
+                   default=None if of_run or fine_tuning else "paper",
+                   default_says=protocol_default)
+    add_field_flag(group, "--data-dir", DataConfig, "data_dir", default=None,
+                   default_says=default)
     add_own_data_flags(group)
 
 
 def add_own_data_flags(group) -> None:
     """--drop-off-grid, --data, --fps, --units, --columns: reading files, and your own files."""
-    group.add_argument("--drop-off-grid", action="store_true",
-                       help="drop rows whose frame is off their file's frame grid (a warning "
-                            "counts them) instead of refusing the file")
-    group.add_argument("--data", default=None, metavar="PATH",
-                       help="your own data instead of a bundled scene: a file, a folder or a "
-                            "glob of text files ('frame ped x y', or a tracker's CSV with a "
-                            "header) or TrajNet++ ndjson (runs and labels take its name)")
-    group.add_argument("--fps", type=positive_float, default=None,
-                       help="frame ids per second of --data (e.g. 10 for a 10 Hz tracker "
-                            "numbering samples 0, 1, 2...); rates that are a multiple of the "
-                            "model's (2.5 Hz for the paper's) are resampled, others refused "
-                            "(default: an ndjson file's own rate, else rows one model step "
-                            "apart)")
+    add_field_flag(group, "--drop-off-grid", DataConfig, "drop_off_grid", default=False,
+                   action="store_true")
+    add_field_flag(group, "--data", DataConfig, "data", default=None, metavar="PATH")
+    add_field_flag(group, "--fps", DataConfig, "fps", default=None)
+    # --units sets DataConfig.scale to one of UNITS' metres per unit (each within its rule).
     group.add_argument("--units", default="m", choices=tuple(UNITS),
                        help="unit of --data's coordinates (default: m)")
-    group.add_argument("--columns", type=column_map, default=None, metavar="F,ID,X,Y",
-                       help="which columns of --data's text files hold frame, pedestrian id, x "
-                            "and y: header names or numbers counted from 1, e.g. 1,2,8,9 for "
-                            "MOTChallenge's frame,id,bb_left,bb_top,bb_width,bb_height,conf,"
-                            "x,y,z (default: a header's frame, id/ped/track_id, x, y; else "
-                            "the four columns frame ped x y)")
+    # --columns: a string the readers can parse (column_map), as the field holds it.
+    add_field_flag(group, "--columns", DataConfig, "columns", default=None, type=column_map,
+                   metavar="F,ID,X,Y")
 
 
 def column_map(text: str) -> str:
@@ -231,11 +272,9 @@ def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default: 0)")
     parser.add_argument("--epoch", type=int, default=None,
                         help="checkpoint epoch (default: latest)")
-    parser.add_argument("--candidates", type=count, default=None, metavar="K",
-                        help="predict with each pedestrian's K nearest as its only candidate "
-                             "neighbours, for crowds of hundreds (docs/MODEL.md 2.4); 0 = the "
-                             "exact model; an evaluation with K is printed, not written "
-                             "(default: the model's own)")
+    add_field_flag(parser, "--candidates", ModelConfig, "candidates", default=None,
+                   metavar="K", default_says="the model's own",
+                   also="; predicting with K, an evaluation is printed, not written")
 
 
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
@@ -244,105 +283,78 @@ def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool
     from gst_jax.model.heads import HEADS       # only commands that build a model load jax
 
     group = parser.add_argument_group("model")
+    m = ModelConfig()
     if several_edge_heads:
         group.add_argument("--edge-heads", default="0,1,2,4,8,16", type=parse_edge_heads,
                            help="comma-separated n to sweep, 0 = full connection "
                                 "(default: 0,1,2,4,8,16)")
     else:
-        group.add_argument("--edge-heads", type=int, default=1, choices=EDGE_HEAD_CHOICES,
-                           help="n, the most neighbours each pedestrian attends to "
-                                "(0 = full connection, no Gumbel selector; default: 1)")
+        # The paper's n (EDGE_HEAD_CHOICES), each one the field takes.
+        add_field_flag(group, "--edge-heads", ModelConfig, "num_edge_heads",
+                       default=m.num_edge_heads, type=int, choices=EDGE_HEAD_CHOICES)
     group.add_argument("--no-ghost", action="store_true",
-                       help="disable the ghost agent (the 'attend to nobody' neighbour)")
-    group.add_argument("--output", default=ModelConfig.output, choices=tuple(HEADS),
-                       help="the output head: deterministic = GST (D), displacements; gaussian = "
-                            "GST (P), bivariate Gaussians (default: deterministic)")
-    group.add_argument("--temporal", default="lstm", choices=TEMPORAL_MODELS,
-                       help="lstm: recurrent rollout, interacting at every predicted step "
-                            "(paper); faster_lstm: the same with gst_updated's (CrowdNav++'s) "
-                            "observation LSTM, which steps through undetected steps too; tcn: "
-                            "the release's temporal convolution readout of the observed steps "
-                            "(default: lstm)")
-    group.add_argument("--node-dim", type=node_width, default=ModelConfig.node_dim,
-                       help="d, the width of node embeddings and of the LSTM input; edges get "
-                            "2d (default: 32, docs/MODEL.md; the release's training scripts "
-                            "leave its --embedding_size at 64)")
-    group.add_argument("--encoder-layers", type=positive_int, default=ModelConfig.encoder_layers,
-                       help=f"node transformer layers (default: {ModelConfig.encoder_layers}; "
-                            "CrowdNav++'s model has 1)")
-    group.add_argument("--lstm-dim", type=positive_int, default=ModelConfig.lstm_hidden,
-                       help=f"the LSTM's hidden width (default: {ModelConfig.lstm_hidden})")
-    group.add_argument("--candidates", type=count, default=ModelConfig.candidates, metavar="K",
-                       help="each pedestrian's candidate neighbours: its K nearest at each step "
-                            "(itself included), for crowds of hundreds; 0 = everyone, the exact "
-                            "model (default: 0; docs/MODEL.md 2.4)")
-    group.add_argument("--attention", default=ModelConfig.attention, choices=ATTENTION_KINDS,
-                       help="release: the paper's attention (softmax over everyone, masked, "
-                            "renormalised; a row can underflow to zeros); masked: masked "
-                            "entries excluded before the softmax (default: release)")
+                       help=f"disable {describe(ModelConfig, 'ghost')[0]}")
+    # A model's output is one of the model layer's heads (HEADS, which may grow).
+    add_field_flag(group, "--output", ModelConfig, "output", default=m.output,
+                   choices=tuple(HEADS))
+    add_field_flag(group, "--temporal", ModelConfig, "temporal", default=m.temporal)
+    add_field_flag(group, "--node-dim", ModelConfig, "node_dim", default=m.node_dim,
+                   type=node_width, also="; edges get 2d",
+                   default_says=f"{m.node_dim}, docs/MODEL.md; the release's training scripts "
+                                "leave its --embedding_size at 64")
+    add_field_flag(group, "--encoder-layers", ModelConfig, "encoder_layers",
+                   default=m.encoder_layers,
+                   default_says=f"{m.encoder_layers}; CrowdNav++'s model has 1")
+    add_field_flag(group, "--lstm-dim", ModelConfig, "lstm_hidden", default=m.lstm_hidden)
+    add_field_flag(group, "--candidates", ModelConfig, "candidates", default=m.candidates,
+                   metavar="K")
+    add_field_flag(group, "--attention", ModelConfig, "attention", default=m.attention)
     add_grid_flags(group)
 
 
 def add_grid_flags(group) -> None:
     """--step, --obs-len, --pred-len: a model's time grid."""
     grid = TimeGrid()
-    group.add_argument("--step", type=positive_float, default=grid.step_s, metavar="SECONDS",
-                       help=f"the model's time step: data at a multiple of its rate are "
-                            f"resampled to it (default: {grid.step_s:g}, the paper's 2.5 Hz; "
-                            "CrowdNav++: 0.25)")
-    group.add_argument("--obs-len", type=positive_int, default=grid.obs_len,
-                       help=f"observed steps (default: {grid.obs_len})")
-    group.add_argument("--pred-len", type=positive_int, default=grid.pred_len,
-                       help=f"predicted steps (default: {grid.pred_len})")
+    add_field_flag(group, "--step", TimeGrid, "step_s", default=grid.step_s, metavar="SECONDS",
+                   default_says=f"{grid.step_s:g}, the paper's 2.5 Hz; CrowdNav++: 0.25")
+    add_field_flag(group, "--obs-len", TimeGrid, "obs_len", default=grid.obs_len)
+    add_field_flag(group, "--pred-len", TimeGrid, "pred_len", default=grid.pred_len)
 
 
 def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> None:
     """The schedule's flags. sweep: --seeds (a count) and a three-way --fully-detected-only."""
     group = parser.add_argument_group("training")
     d = _TRAIN_DEFAULTS
-    group.add_argument("--epochs", type=positive_int, default=d.epochs,
-                       help=f"epochs (default: {d.epochs})")
+    add_field_flag(group, "--epochs", TrainConfig, "epochs", default=d.epochs)
+    # Fine-tuning (--init) has a schedule and a learning rate of its own (FINE_TUNING): left
+    # out, these two flags are None, and train_config takes the paper's or fine-tuning's.
     tuned = "" if sweep else "; {} when fine-tuning with --init"
-    group.add_argument("--schedule", default=d.schedule if sweep else None, choices=SCHEDULES,
-                       help=f"paper: learning rate x{d.lr_decay} every {d.lr_decay_every} epochs; "
-                            f"compressed: x{d.lr_decay} every epochs/4 (the paper's shape "
-                            "fitted to --epochs; the same at 200). Both anneal tau "
-                            f"{d.tau_start} -> {d.tau_end} over the run. finetune: a constant "
-                            f"learning rate, tau held at {d.tau_end} (default: {d.schedule}"
-                            + tuned.format(FINE_TUNING["schedule"]) + ")")
-    group.add_argument("--batch-size", type=positive_int, default=d.batch_size,
-                       help=f"scenes averaged per optimiser step (default: {d.batch_size})")
-    group.add_argument("--learning-rate", type=positive_float,
-                       default=d.learning_rate if sweep else None,
-                       help="initial Adam learning rate, decayed as --schedule says "
-                            f"(default: {d.learning_rate}"
-                            + tuned.format(FINE_TUNING["learning_rate"]) + ")")
+    add_field_flag(group, "--schedule", TrainConfig, "schedule",
+                   default=d.schedule if sweep else None,
+                   default_says=d.schedule + tuned.format(FINE_TUNING["schedule"]))
+    add_field_flag(group, "--batch-size", TrainConfig, "batch_size", default=d.batch_size)
+    add_field_flag(group, "--learning-rate", TrainConfig, "learning_rate",
+                   default=d.learning_rate if sweep else None,
+                   default_says=f"{d.learning_rate}" + tuned.format(FINE_TUNING["learning_rate"]))
     if sweep:
-        group.add_argument("--seed", type=int, default=d.seed,
-                           help=f"first seed; also fixes the shared data order (default: {d.seed})")
+        add_field_flag(group, "--seed", TrainConfig, "seed", default=d.seed,
+                       also=" of the first member; also fixes the shared data order")
         group.add_argument("--seeds", type=positive_int, default=1,
                            help="seeds per configuration: seed, seed+1, ... (default: 1)")
         group.add_argument("--fully-detected-only", default="partial", choices=tuple(DETECTION),
                            help="partial: observe everyone (paper default); full: only fully "
                                 "detected pedestrians (the paper's 'F'); both (default: partial)")
     else:
-        group.add_argument("--seed", type=int, default=d.seed,
-                           help=f"random seed (default: {d.seed})")
-        group.add_argument("--fully-detected-only", action="store_true",
-                           help="drop partially detected pedestrians (the paper's 'F' baseline)")
-        group.add_argument("--init", default=None, metavar="MODEL",
-                           help="fine-tune: start from this model's parameters (a work "
-                                "directory, SWEEP_DIR:MEMBER or pretrained:NAME); the epoch "
-                                "with the best validation AOE (the starting model's included) "
-                                "is kept")
-        group.add_argument("--eval-every", type=count, default=d.eval_every,
-                           help="epochs between validation AOE/FOE, with a protocol that has a "
-                                f"validation split (default: {d.eval_every}; 0 = never)")
-    group.add_argument("--no-rotate", action="store_true", help="disable random rotation")
-    group.add_argument("--checkpoint-every", type=positive_int, default=d.checkpoint_every,
-                       help=f"epochs between checkpoints (default: {d.checkpoint_every})")
-    group.add_argument("--max-train-windows", type=count, default=0,
-                       help="train on the first k windows only (smoke tests; default: all)")
+        add_field_flag(group, "--seed", TrainConfig, "seed", default=d.seed)
+        add_field_flag(group, "--fully-detected-only", TrainConfig, "fully_detected_only",
+                       default=False, action="store_true")
+        add_field_flag(group, "--init", TrainConfig, "init", default=None, metavar="MODEL")
+        add_field_flag(group, "--eval-every", TrainConfig, "eval_every", default=d.eval_every)
+    group.add_argument("--no-rotate", action="store_true",
+                       help=f"disable {describe(TrainConfig, 'rotate')[0]}")
+    add_field_flag(group, "--checkpoint-every", TrainConfig, "checkpoint_every",
+                   default=d.checkpoint_every)
+    add_field_flag(group, "--max-train-windows", TrainConfig, "max_train_windows", default=0)
 
 
 def add_device_flags(parser: argparse.ArgumentParser) -> None:

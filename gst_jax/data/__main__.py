@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 from gst_jax import cli
-from gst_jax.config import ETH_UCY_SCENES, PROTOCOLS, SCENES, DataConfig
+from gst_jax.config import ETH_UCY_SCENES, SCENES, DataConfig
 from gst_jax.data.stats import format_stats, split_stats
 
 
@@ -15,11 +15,9 @@ def main(argv: list[str] | None = None) -> None:
     stats = commands.add_parser("stats", help="windows, pedestrians and fully detected counts")
     stats.add_argument("--scene", action="append", choices=SCENES,
                        help="scene to count (repeatable; default: the five ETH/UCY scenes)")
-    stats.add_argument("--protocol", default="paper", choices=PROTOCOLS,
-                       help="split protocol (default: paper)")
+    cli.add_field_flag(stats, "--protocol", DataConfig, "protocol", default="paper")
     cli.add_grid_flags(stats)
-    stats.add_argument("--data-dir", default=None,
-                       help="folder holding eth_ucy/ and trajnetpp/ (default: bundled data/)")
+    cli.add_field_flag(stats, "--data-dir", DataConfig, "data_dir", default=None)
     cli.add_own_data_flags(stats)
     stats.add_argument("--json", action="store_true",
                        help="print JSON in the schema of reference_windows.json")
