@@ -72,3 +72,4 @@ def test_a_slot_reset_forgets_its_issued_predictions():
     observed = method.observe(state, jnp.array([[5.0, 0.0], [2.0, 0.0]]), jnp.ones(2, bool))
     numerator, denominator = observed.stats
     assert float(numerator) == pytest.approx(1.0 + 2.0) and float(denominator) == 2.0
+
