@@ -253,6 +253,10 @@ def main() -> None:
                         "records the output folder holds and name the configurations missing")
     parser.add_argument("--scenarios", nargs="+", choices=tuple(NAMED), help="run only the "
                         "configurations of these scenarios (default: all)")
+    parser.add_argument("--issue90", action="store_true", help="run only issue 90's "
+                        "configurations")
+    parser.add_argument("--reverse", action="store_true", help="run them last first (a second "
+                        "process beside one running them in order)")
     add_results_flags(parser, "navigation", "the records and navigation.md", runs=False)
     args = parser.parse_args()
     out = results_folder(args)
@@ -265,8 +269,12 @@ def main() -> None:
     # every prediction (70 min for 500 episodes among 35 reactive humans, against about 2 for
     # the others), so a study stopped early keeps the most of them.
     in_order = sorted(everything, key=lambda c: (c[0] == "truth-mpc") * (1 + c[2][2]))
+    if args.issue90:
+        in_order = [c for c in in_order if c in ISSUE90]
     if args.scenarios:
         in_order = [c for c in in_order if c[2] in [NAMED[name] for name in args.scenarios]]
+    if args.reverse:
+        in_order = in_order[::-1]
     for done, configuration in enumerate([] if args.tabulate else in_order):
         if found(configuration, args.episodes, args.seed, runs) is None:
             started = time.perf_counter()
