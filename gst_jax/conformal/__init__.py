@@ -33,7 +33,14 @@ jit, vmap over any leading axes (tracks, horizon steps, environments) and scan o
                            radius_in_force=delayed.issued.T, uniform=uniforms_p)    # (P,)
 
 `Regions` does exactly this for a stream's track slots, pooled or per track, and
-`simultaneous` gives whole-path discs instead.
+`simultaneous` gives whole-path discs instead. Offline, from calibration paths' scores
+(paths, P), `whole_path_region` gives radii (P,) that hold every step of a new exchangeable
+path together with probability at least 1 - alpha, and `joint_coverage` reports how many
+test paths they held, with an exact binomial interval:
+
+    region = conformal.whole_path_region(scores, mask, alpha=0.1, fit=first_half)
+    inside = conformal.paths_inside(test_scores, test_mask, region.radii)
+    report = conformal.joint_coverage(inside, test_mask.any(axis=-1))  # .lower, .upper
 
 **Pooled vs per track.** Per track: an instance per (track, horizon step) learns that
 person's radius from that person's scores alone (GenSafeNav's ROS 2 node; a new person starts
@@ -58,14 +65,24 @@ method's equations and guarantees, and what runs them:
   (what `gst_jax.stream` and `gst_jax.coverage` run);
 - `simultaneous`, `path_errors`, `path_scales` (`paths.py`): whole-path discs, one score per
   prediction (the largest of its steps' errors over their scales), so that all P steps of a
-  prediction hold together.
+  prediction hold together;
+- `whole_path_region`, `PathRegion`, `path_scores`, `step_quantiles`, `paths_inside`,
+  `joint_coverage`, `JointCoverage` (`whole_path.py`): whole-path regions calibrated across
+  trajectories (Cleaveland, Lee, Pappas & Lindemann 2024: per-step scales from one split, a
+  split-conformal quantile of the normalised max on the other), P(every step of a new
+  exchangeable path inside) in [1 - alpha, 1 - alpha + 1/(n+1)), and the joint coverage of
+  test paths as a count with its exact binomial interval;
+- `clopper_pearson` (`binomial.py`): the exact (Clopper-Pearson) binomial interval, from the
+  regularised incomplete beta in float64, no scipy.
 
 The plain-numpy references of the update equations are in gst_jax/testing/
-conformal_reference.py; tests/test_conformal.py checks these functions against them.
+conformal_reference.py; tests/test_conformal.py and tests/test_whole_path.py check these
+functions against them.
 """
 
 from gst_jax.conformal._src.aci import ACIState, aci
 from gst_jax.conformal._src.base import BATCH_MODES, LOSSES, OUTPUTS, OnlineConformal
+from gst_jax.conformal._src.binomial import clopper_pearson
 from gst_jax.conformal._src.delayed import (DelayedScores, ScoreBufferState, record_issued,
                                             reset_slots, score_buffer_init,
                                             score_buffer_update)
@@ -74,8 +91,13 @@ from gst_jax.conformal._src.paths import path_errors, path_scales, simultaneous
 from gst_jax.conformal._src.pid import PIDState, pid
 from gst_jax.conformal._src.regions import ONLINE_METHODS, Regions
 from gst_jax.conformal._src.split import split_radius
+from gst_jax.conformal._src.whole_path import (JointCoverage, PathRegion, joint_coverage,
+                                               path_scores, paths_inside, step_quantiles,
+                                               whole_path_region)
 
-__all__ = ["ACIState", "DelayedScores", "DtACIState", "ONLINE_METHODS", "OnlineConformal",
-           "PIDState", "Regions", "ScoreBufferState", "aci", "dtaci", "path_errors",
-           "path_scales", "pid", "record_issued", "reset_slots", "score_buffer_init",
-           "score_buffer_update", "simultaneous", "split_radius"]
+__all__ = ["ACIState", "DelayedScores", "DtACIState", "JointCoverage", "ONLINE_METHODS",
+           "OnlineConformal", "PIDState", "PathRegion", "Regions", "ScoreBufferState", "aci",
+           "clopper_pearson", "dtaci", "joint_coverage", "path_errors", "path_scales",
+           "path_scores", "paths_inside", "pid", "record_issued", "reset_slots",
+           "score_buffer_init", "score_buffer_update", "simultaneous", "split_radius",
+           "step_quantiles", "whole_path_region"]

@@ -1,14 +1,16 @@
 """Plain-numpy references of gst_jax.conformal's update equations: loops, float64, no jax.
 
 Written from the papers' equations (split conformal; Gibbs & Candès 2021 for ACI;
-Angelopoulos, Candès & Tibshirani 2023 for PID) and, for DtACI, from GenSafeNav's
-description of its port of Gibbs & Candès 2022 (gst_jax/conformal/_src/dtaci.py), one score
-and one expert at a time, for tests/test_conformal.py and benchmarks/bench_conformal.py to
+Angelopoulos, Candès & Tibshirani 2023 for PID; Cleaveland, Lee, Pappas & Lindemann 2024
+for the whole-path regions) and, for DtACI, from GenSafeNav's description of its port of
+Gibbs & Candès 2022 (gst_jax/conformal/_src/dtaci.py), one score and one expert at a time,
+for tests/test_conformal.py, tests/test_whole_path.py and benchmarks/bench_conformal.py to
 compare the jitted versions with.
 
-Each function runs one instance over T time steps; at step t it gets a batch of scores
-`scores[t]` (B,) of which `mask[t]` (B,) are present, and returns the radius in force before
-each step and after the last: radii (T + 1,).
+Each online method's function runs one instance over T time steps; at step t it gets a batch
+of scores `scores[t]` (B,) of which `mask[t]` (B,) are present, and returns the radius in
+force before each step and after the last: radii (T + 1,). `whole_path_region` and
+`paths_inside` take calibration paths' scores (paths, P) at once.
 """
 
 from __future__ import annotations
@@ -163,3 +165,46 @@ def pid(scores, mask, alpha: float, eta: float, k_i: float, c_sat: float, q0: fl
         misses.append(total)
     return {"radii": np.array(radii), "tracking": np.array(tracking),
             "misses": np.array(misses)}
+
+
+def whole_path_region(scores, mask, alpha: float, fit=None, scales=None,
+                      scale_level: float | None = None) -> dict:
+    """Normalised-max whole-path regions (Cleaveland et al. 2024), path by path: scales
+    sigma_k = the ceil(level n_k)-th smallest (at least the first) of the n_k observed
+    horizon-k scores of the `fit` paths (level 1 - alpha for None; +inf for none; at least
+    the smallest positive float), unless given; each other path with an observed step gets
+    m = max_k observed s_k / sigma_k; q = the split-conformal radius of those m; radii
+    q sigma_k (+inf where either is). Returns scales (P,), scores (paths,) m (-inf for a path
+    with no observed step), quantile, radii (P,), count."""
+    scores = np.asarray(scores, np.float64)
+    paths, horizon = scores.shape
+    mask = np.ones((paths, horizon), bool) if mask is None else np.asarray(mask, bool)
+    fit = np.zeros(paths, bool) if fit is None else np.asarray(fit, bool)
+    if scales is None:
+        level = 1 - alpha if scale_level is None else scale_level
+        scales = []
+        for k in range(horizon):
+            seen = sorted(float(scores[i, k]) for i in range(paths) if fit[i] and mask[i, k])
+            if not seen:
+                scales.append(math.inf)
+                continue
+            rank = max(math.ceil(level * len(seen)), 1)
+            scales.append(max(seen[rank - 1], np.finfo(np.float64).tiny))
+    scales = [float(s) for s in scales]
+    normalised, calibrating = [], []
+    for i in range(paths):
+        ratios = [float(scores[i, k]) / scales[k] for k in range(horizon) if mask[i, k]]
+        normalised.append(max(ratios) if ratios else -math.inf)
+        if ratios and not fit[i]:
+            calibrating.append(normalised[-1])
+    quantile = split_radius(calibrating, alpha)
+    radii = [math.inf if math.isinf(s) or math.isinf(quantile) else quantile * s
+             for s in scales]
+    return {"scales": np.array(scales), "scores": np.array(normalised),
+            "quantile": quantile, "radii": np.array(radii), "count": len(calibrating)}
+
+
+def paths_inside(scores, mask, radii) -> np.ndarray:
+    """Whether each path has every observed step's score within its step's radius."""
+    return np.array([all(float(s) <= float(r) for s, m, r in zip(row, observed, radii) if m)
+                     for row, observed in zip(scores, mask)])
