@@ -73,3 +73,26 @@ def test_a_slot_reset_forgets_its_issued_predictions():
     numerator, denominator = observed.stats
     assert float(numerator) == pytest.approx(1.0 + 2.0) and float(denominator) == 2.0
 
+
+
+def test_the_environment_corrects_its_predictions_online_after_a_speed_shift():
+    """CrowdNav(adaptation=SpeedScale()) inside the jitted step: constant velocity's
+    predictions (its last displacement) of humans who walk 2x faster from 2 s are corrected
+    upward once the faster steps are scored; before the shift the scale stays near 1."""
+    from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, SPEED_SHIFT, CrowdNav,
+                                                       EnvParams)
+
+    env = CrowdNav(8, CONSTANT_VELOCITY, shift=SPEED_SHIFT, adaptation=adaptation.SpeedScale())
+    params = EnvParams(shift_at_s=2.0, speed_factor=2.0)
+    obs, state = env.reset(jax.random.key(4), params)
+
+    def step(state, key):
+        _, state, *_ = env.step_env(key, state, jnp.zeros(2), params)
+        return state, env.adaptation.scale(state.tracks.adaptation)
+
+    _, scales = jax.jit(lambda s: jax.lax.scan(step, s, jax.random.split(jax.random.key(5), 16)))(
+        state)
+    scales = np.asarray(scales)                   # after steps 1..16; the shift moves step 9 on
+    assert np.all(np.abs(scales[:8] - 1.0) < 0.08)         # 1.05 at most, measured
+    # The humans speed up over a few steps and CV lags each: corrected (1.19, measured).
+    assert scales[9:].max() > 1.15
