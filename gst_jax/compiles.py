@@ -59,10 +59,10 @@ class CompileCount:
         self.count, self.seconds = 0, 0.0
         self.warned_of_maps = False
 
-    def __call__(self, event: str, duration: float, **_) -> None:
+    def __call__(self, event: str, duration_secs: float, **_: str | int) -> None:
         if event == COMPILE_EVENT:
             self.count += 1
-            self.seconds += duration
+            self.seconds += duration_secs
             self._check_memory_maps()
 
     def _check_memory_maps(self) -> None:
@@ -101,7 +101,8 @@ def use_persistent_cache(directory: str | os.PathLike, min_compile_s: float | No
     check_cache_entries()
     if min_compile_s is not None:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
-    if jax.config.jax_compilation_cache_dir != path:
+    # jax's flags are attributes its config makes at runtime, unknown to its stubs.
+    if jax.config.jax_compilation_cache_dir != path:  # type: ignore[attr-defined]
         jax.config.update("jax_compilation_cache_dir", path)
         # jax decides once per process whether it has a cache: let it decide again.
         jax_cache.reset_cache()
@@ -146,9 +147,6 @@ class CheckedCache(CacheInterface):
         # `get` refused (a race with another process's good entry costs one compile).
         (Path(self._path) / f"{key}{lru_cache._CACHE_SUFFIX}").unlink(missing_ok=True)
         self._base.put(key, ENTRY_HEADER + _digest(key, value) + value)
-
-    def clear(self) -> None:
-        self._base.clear()
 
 
 _jax_file_cache = jax_cache.get_file_cache

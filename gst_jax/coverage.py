@@ -65,7 +65,7 @@ class Snapshot:
     frame: int
     history: np.ndarray
     futures: np.ndarray
-    radii: np.ndarray
+    radii: np.ndarray | None            # None in a recording's best frame, before measuring
     truth: np.ndarray
 
 
@@ -90,13 +90,15 @@ def record(run, streams: list[Iterator[FrameRows]], *, calibration: float = 0.3,
     the model once and keep every delayed score: what every method is measured on."""
     if not 0 <= calibration < 1:
         raise ValueError(f"calibration must lie in [0, 1), got {calibration}")
-    streams = [list(s) for s in streams]
-    total = sum(len(s) for s in streams)
+    recorded = [list(s) for s in streams]
+    total = sum(len(s) for s in recorded)
     calibrating = round(calibration * total)
     horizon = run.model_config.pred_len
-    files, best, done = [], None, 0
+    files: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    best: tuple[int, int, np.ndarray, Snapshot] | None = None
+    done = 0
     started = time.perf_counter()
-    for frames_of_file in filter(None, streams):
+    for frames_of_file in filter(None, recorded):
         # A recorded file's ids name one person each (its windows assume so too): no
         # restarts for fast movers (ETH's annotations exceed a brisk walk at 46 % of steps).
         player = Stream(run, regions=conformal.Regions(None), convention=convention, seed=seed,
@@ -109,6 +111,7 @@ def record(run, streams: list[Iterator[FrameRows]], *, calibration: float = 0.3,
             after = np.asarray(player.state.track_ids)
             if len(after) != len(before):
                 raise RuntimeError("the stream grew: live_tracks undercounted")
+            assert out.delayed is not None, "a stream with regions gives delayed scores"
             scores.append(out.delayed.scores)
             masks.append(out.delayed.mask)
             new_slots.append(np.asarray(player.state.fresh))
@@ -121,7 +124,7 @@ def record(run, streams: list[Iterator[FrameRows]], *, calibration: float = 0.3,
                 best = (len(files), index, slots, snapshot)
             if progress:
                 progress.count("frames", done, total, started)
-        files.append(tuple(np.stack(x) for x in (scores, masks, new_slots)))
+        files.append((np.stack(scores), np.stack(masks), np.stack(new_slots)))
     return Recording(files, total, calibrating, run.model_config.step_s, best)
 
 

@@ -56,7 +56,7 @@ from gst_jax.interop import (
     load_state_dict,
     params_from_torch,
 )
-from gst_jax.model import Controls, weights
+from gst_jax.model import Controls, Params, weights
 from gst_jax.rollout import rollout
 from gst_jax.safe_pickle import read_args
 
@@ -143,7 +143,7 @@ def checkpoint_args(load_path: str | Path) -> dict[str, Any]:
     return dict(checked_args(read_args(path), str(path), CHECKPOINT_ARGS))
 
 
-def predict(params, config: ModelConfig, input_traj: jax.Array, input_mask: jax.Array
+def predict(params: Params, config: ModelConfig, input_traj: jax.Array, input_mask: jax.Array
             ) -> tuple[jax.Array, jax.Array]:
     """`CrowdNavPredInterfaceMultiEnv.forward` as a pure function (see the module docstring).
 
@@ -182,7 +182,7 @@ class Predictor:
     "undetected" reads it as a missed detection (see the module docstring).
     """
 
-    params: Any
+    params: Params
     config: ModelConfig
     non_finite: Literal["raise", "undetected"] = "raise"
 

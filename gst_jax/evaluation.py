@@ -21,15 +21,15 @@ import numpy as np
 from gst_jax import data, graph, metrics
 from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TimeGrid
 from gst_jax.errors import DataError
-from gst_jax.model import Controls
+from gst_jax.model import Controls, Params
 from gst_jax.parallel import Devices
 from gst_jax.predict import DEFAULT_MEMORY_BUDGET, make_predict
 from gst_jax.prediction_files import PredictedBatch, read_predictions, write_predictions
 from gst_jax.progress import Progress
 
 
-def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: ModelConfig, *,
-                    num_samples: int = 20,
+def evaluate_params(params: Params, key: jax.Array, window_set: data.WindowSet,
+                    config: ModelConfig, *, num_samples: int = 20,
                     with_kde: bool = True, with_baseline: bool = True,
                     fully_detected_only: bool = False, controls: Controls | None = None,
                     predict=None, progress: Progress | None = None,
@@ -47,8 +47,8 @@ def evaluate_params(params, key: jax.Array, window_set: data.WindowSet, config: 
                  with_baseline=with_baseline)
 
 
-def predict_windows(params, key: jax.Array, window_set: data.WindowSet, config: ModelConfig, *,
-                    num_samples: int = 20,
+def predict_windows(params: Params, key: jax.Array, window_set: data.WindowSet,
+                    config: ModelConfig, *, num_samples: int = 20,
                     fully_detected_only: bool = False, controls: Controls | None = None,
                     predict=None, progress: Progress | None = None,
                     devices: Devices | None = None,
@@ -119,8 +119,10 @@ def _score(predicted: Iterable[PredictedBatch], obs_len: int, names: Iterable[st
             pred=pred, truth=np.asarray(batch.positions[:, obs_len:]),
             scored_mask=batch.fully_detected_mask * scene_mask[:, None],
             predicted_mask=predicted_mask,
-            truth_step_mask=batch.position_mask[:, obs_len:] * scene_mask[:, None, None],
-            observed=batch.positions[:, :obs_len], observed_node_mask=batch.node_mask[:, :obs_len])
+            truth_step_mask=np.asarray(batch.position_mask[:, obs_len:]
+                                       * scene_mask[:, None, None]),
+            observed=np.asarray(batch.positions[:, :obs_len]),
+            observed_node_mask=np.asarray(batch.node_mask[:, :obs_len]))
         for name in names:
             metrics.accumulate(totals, metrics.METRICS[name](scored))
     return totals, num_samples
@@ -142,13 +144,14 @@ def _rows(result: dict) -> list[tuple[str, ...]]:
     def percent(rate):
         return f"{100 * rate:.2f}%"
 
-    rows = [("GST" if "epoch" in result else "predictions",
-             f"{result['aoe']:.3f} ± {result['aoe_std']:.3f}",
-             f"{result['foe']:.3f} ± {result['foe_std']:.3f}",
-             f"{result['min_ade']:.3f}", f"{result['min_fde']:.3f}",
-             f"{result['kde_nll']:.2f}" if "kde_nll" in result else "-",
-             percent(result["collision_rate"]), percent(result["col_i"]),
-             percent(result["col_ii"]))]
+    rows: list[tuple[str, ...]] = [
+        ("GST" if "epoch" in result else "predictions",
+         f"{result['aoe']:.3f} ± {result['aoe_std']:.3f}",
+         f"{result['foe']:.3f} ± {result['foe_std']:.3f}",
+         f"{result['min_ade']:.3f}", f"{result['min_fde']:.3f}",
+         f"{result['kde_nll']:.2f}" if "kde_nll" in result else "-",
+         percent(result["collision_rate"]), percent(result["col_i"]),
+         percent(result["col_ii"]))]
     if "cv_aoe" in result:
         rows.append(("constant velocity", f"{result['cv_aoe']:.3f}", f"{result['cv_foe']:.3f}",
                      *"-" * 6))

@@ -6,8 +6,11 @@ the neighbour and i the target, as in the release (`A[t, j, i] = x_j - x_i`).
 
 from __future__ import annotations
 
+from typing import overload
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from gst_jax.data.batch import SceneBatch
 
@@ -17,7 +20,8 @@ EPS = 1e-10
 TINY = 1e-30
 
 
-def displacements(positions: jax.Array, node_mask: jax.Array) -> jax.Array:
+def displacements(positions: jax.Array | np.ndarray, node_mask: jax.Array | np.ndarray
+                  ) -> jax.Array:
     """Node features v^t = x^t - x^{t-1}, zero at t = 0 and where m^t = 0.
 
     positions (..., T, N, 2), node_mask (..., T, N) -> (..., T, N, 2).
@@ -27,12 +31,17 @@ def displacements(positions: jax.Array, node_mask: jax.Array) -> jax.Array:
     return v * node_mask[..., None]
 
 
-def adjacency(node_mask: jax.Array) -> jax.Array:
+@overload
+def adjacency(node_mask: jax.Array) -> jax.Array: ...
+@overload
+def adjacency(node_mask: np.ndarray) -> np.ndarray: ...
+def adjacency(node_mask):
     """a_ij = m_i m_j.  (..., N) -> (..., N, N)."""
     return node_mask[..., :, None] * node_mask[..., None, :]
 
 
-def edge_features(positions: jax.Array, node_mask: jax.Array) -> jax.Array:
+def edge_features(positions: jax.Array | np.ndarray, node_mask: jax.Array | np.ndarray
+                  ) -> jax.Array | np.ndarray:
     """A[..., j, i] = x_j - x_i where both nodes are valid, else 0.
 
     positions (..., N, 2), node_mask (..., N) -> (..., N, N, 2).

@@ -23,7 +23,7 @@ import numpy as np
 
 from gst_jax.config import ModelConfig
 from gst_jax.errors import DataError
-from gst_jax.model import weights
+from gst_jax.model import Params, weights
 from gst_jax.safe_pickle import MAX_BYTES, read_torch
 
 SELECTOR = "gumbel_social_transformer.edge_selector."
@@ -96,7 +96,7 @@ def check_state_dict(state_dict: Mapping[str, Any], config: ModelConfig, where: 
 
 
 def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
-                      max_edge_heads: int = 16, config: ModelConfig | None = None):
+                      max_edge_heads: int = 16, config: ModelConfig | None = None) -> Params:
     """Convert release weights into gst_jax parameters (traceable, so grads flow back).
 
     PyTorch Linear stores W as (out, in); flax kernels are (in, out). The selector's per-head
@@ -120,10 +120,11 @@ def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
     edge_embedding = (dense("edge_embedding.") if "edge_embedding.weight" in state_dict
                       else {"kernel": jnp.zeros((2, config.edge_dim)),
                             "bias": jnp.zeros(config.edge_dim)})
-    params = {"node_embedding": dense(node_embedding), "edge_embedding": edge_embedding,
-              "hidden2pos": dense("hidden2pos."),
-              "lstm": {"weight_ih": w("lstm.weight_ih_l0").T, "weight_hh": w("lstm.weight_hh_l0").T,
-                       "bias_ih": w("lstm.bias_ih_l0"), "bias_hh": w("lstm.bias_hh_l0")}}
+    params: dict[str, Any] = {
+        "node_embedding": dense(node_embedding), "edge_embedding": edge_embedding,
+        "hidden2pos": dense("hidden2pos."),
+        "lstm": {"weight_ih": w("lstm.weight_ih_l0").T, "weight_hh": w("lstm.weight_hh_l0").T,
+                 "bias_ih": w("lstm.bias_ih_l0"), "bias_hh": w("lstm.bias_hh_l0")}}
     for layer in range(config.encoder_layers):
         prefix = ENCODER.format(layer)
         params[f"node_encoder_layers_{layer}"] = {
@@ -136,7 +137,7 @@ def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
     width, d, de = config.selector_dim, config.node_dim, config.edge_dim
     if num_edge_heads:
         hd = width // num_edge_heads
-        selector = {
+        selector: dict[str, Any] = {
             "in_proj_kernel": w(SELECTOR + "self_attn.in_proj_weight").T,
             "in_proj_bias": w(SELECTOR + "self_attn.in_proj_bias"),
             "mlp_hidden_kernel": jnp.zeros((width, width)).at[:hd, :hd].set(
@@ -156,7 +157,8 @@ def params_from_torch(state_dict, *, num_edge_heads: int, ghost: bool,
     return params
 
 
-def params_to_torch(params, *, num_edge_heads: int, config: ModelConfig | None = None) -> dict:
+def params_to_torch(params: Params, *, num_edge_heads: int, config: ModelConfig | None = None
+                    ) -> dict:
     """Inverse of `params_from_torch`: gst_jax parameters (or gradients) -> torch names/layout.
 
     The selector's unused attention out_proj is not produced; with n = 0 no selector at all.

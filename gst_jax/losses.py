@@ -18,5 +18,5 @@ def scene_losses(config: ModelConfig, output: RolloutOutput, batch: SceneBatch) 
     return head(config.output).scene_loss(Losses(
         displacements=output.displacements, mu=output.mu, sigma=output.sigma, corr=output.corr,
         true_displacements=graph.displacements(batch.positions, batch.node_mask)[:, obs_len:],
-        step_mask=batch.node_mask[:, obs_len:] * output.predicted_mask[:, None, :],
+        step_mask=output.predicted_mask[:, None, :] * batch.node_mask[:, obs_len:],
         fully_detected=batch.fully_detected_mask))

@@ -44,9 +44,15 @@ class Scored:
     observed_node_mask: np.ndarray
 
     @property
+    def samples(self) -> np.ndarray:
+        """pred, for the metrics of a model's samples (never asked of a baseline's batch)."""
+        assert self.pred is not None, "a baseline's batch has no samples"
+        return self.pred
+
+    @property
     def errors(self) -> np.ndarray:
         """(K, B, P, N) distance of each sample to the truth."""
-        return offset_errors(self.pred, self.truth)
+        return offset_errors(self.samples, self.truth)
 
     def over_scored(self, values: np.ndarray) -> np.ndarray:
         """values (..., B, N) summed over the scored pedestrians -> (...). Pedestrians outside
@@ -62,8 +68,10 @@ class Scored:
 class Ratio(NamedTuple):
     """A metric's running sums: its value is total / count. total () or (K,) per run."""
 
-    total: np.ndarray
-    count: float
+    total: np.ndarray | float
+    # The field shadows tuple.count (mypy: an incompatible override); the name is every
+    # record's, and nothing calls tuple.count on a Ratio.
+    count: float  # type: ignore[assignment]
 
 
 def offset_errors(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -146,10 +154,10 @@ def kde_nll(s: Scored) -> dict[str, Ratio]:
     """Trajectron++ KDE NLL: per pedestrian, minus the mean over steps of the clipped log
     density of the truth under the K samples. A 2-D KDE needs more samples than dimensions:
     none with K <= 2."""
-    if s.pred.shape[0] <= 2:
+    if s.samples.shape[0] <= 2:
         return {}
     scenes, pedestrians = np.nonzero(np.asarray(s.scored_mask) > 0)
-    pred = np.asarray(s.pred, np.float64)[:, scenes, :, pedestrians]   # (S, K, P, 2)
+    pred = np.asarray(s.samples, np.float64)[:, scenes, :, pedestrians]   # (S, K, P, 2)
     truth = np.asarray(s.truth, np.float64)[scenes, :, pedestrians]    # (S, P, 2)
     log_densities = kde_log_densities(
         np.moveaxis(pred, 1, 0).reshape(pred.shape[1], -1, 2), truth.reshape(-1, 2))
@@ -184,7 +192,7 @@ def collision_sums(positions: np.ndarray, mask: np.ndarray,
 def collision_rates(s: Scored) -> dict[str, Ratio]:
     """Pairs of predicted pedestrians that come closer than COLLISION_DISTANCE, in the
     samples (over all runs) and in the truth."""
-    predicted, pairs = collision_sums(s.pred, s.predicted_mask)
+    predicted, pairs = collision_sums(s.samples, s.predicted_mask)
     true, true_pairs = collision_sums(s.truth, s.predicted_mask, s.truth_step_mask)
     return {"collision_rate": Ratio(np.sum(predicted), float(np.sum(pairs))),
             "truth_collision_rate": Ratio(true, float(true_pairs))}
@@ -232,7 +240,7 @@ def trajnet_collisions_by_primary(pred: np.ndarray, truth: np.ndarray, primary_m
 def trajnet_collisions(s: Scored) -> dict[str, Ratio]:
     """TrajNet++'s Col-I (against the predicted neighbours) and Col-II (against the true
     ones), every scored pedestrian taken as primary in turn, per run."""
-    col_i, col_ii = trajnet_collisions_by_primary(s.pred, s.truth, s.scored_mask,
+    col_i, col_ii = trajnet_collisions_by_primary(s.samples, s.truth, s.scored_mask,
                                                   s.predicted_mask, s.truth_step_mask)
     return {"col_i": Ratio(col_i, s.count), "col_ii": Ratio(col_ii, s.count)}
 

@@ -19,13 +19,14 @@ from typing import Sequence
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 # The coordinate that stands for the ghost neighbour (any value no window reaches).
 GHOST = 0x7FFF_FFFF
 _GOLDEN = 0x9E3779B9
 
 
-def window_keys(key: jax.Array, window_index: jax.Array) -> jax.Array:
+def window_keys(key: jax.Array, window_index: ArrayLike) -> jax.Array:
     """(B,) keys, one per window: `key` folded with each window's index in its dataset split,
     so that a window's draws do not depend on which windows share its batch (padding scenes,
     index -1, get keys too; their outputs are masked)."""

@@ -32,11 +32,12 @@ class PredictedBatch(NamedTuple):
     """K sampled futures of a batch of windows (`data.evaluation_batches`).
 
     batch: the windows with their future, padded to N; positions: (K, B, P, N, 2), NaN where
-    nobody was predicted; predicted_mask: (B, N) the pedestrians predicted.
+    nobody was predicted, None where a baseline alone is scored; predicted_mask: (B, N) the
+    pedestrians predicted.
     """
 
     batch: SceneBatch
-    positions: np.ndarray
+    positions: np.ndarray | None
     predicted_mask: np.ndarray
 
 
@@ -51,6 +52,7 @@ def write_predictions(path: Path, window_set: data.WindowSet,
     try:
         with open(partial, "w") as out:
             for batch, positions, predicted_mask in predicted:
+                assert positions is not None, "a baseline's batch has no predictions to write"
                 for b, index in enumerate(np.asarray(batch.window_index)):
                     if not batch.scene_mask[b]:
                         continue

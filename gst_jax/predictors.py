@@ -29,6 +29,7 @@ import jax.numpy as jnp
 from gst_jax import crowdnav
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch, node_mask_from_positions
+from gst_jax.model import Params
 from gst_jax.predict import make_predict
 
 # The simulator's futures (C, P, 2), computed only where a predictor asks for them.
@@ -38,12 +39,17 @@ TruthFn = Callable[[], jax.Array]
 class Predictor(Protocol):
     """Futures of every slot from its history (module docstring)."""
 
-    obs_len: int
-    pred_len: int
     uses_key: ClassVar[bool]
 
-    def predict(self, params, key: jax.Array, positions: jax.Array, detected: jax.Array,
-                truth: TruthFn | None = None) -> tuple[jax.Array, jax.Array]: ...
+    @property
+    def obs_len(self) -> int: ...
+
+    @property
+    def pred_len(self) -> int: ...
+
+    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+                detected: jax.Array, truth: TruthFn | None = None
+                ) -> tuple[jax.Array, jax.Array]: ...
 
 
 def last_two_detected(detected: jax.Array) -> jax.Array:
@@ -82,7 +88,10 @@ class GST:
     def pred_len(self) -> int:
         return self.config.pred_len
 
-    def predict(self, params, key, positions, detected, truth=None):
+    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+                detected: jax.Array, truth: TruthFn | None = None
+                ) -> tuple[jax.Array, jax.Array]:
+        assert params is not None, "GST predicts with its model's parameters"
         if self.convention == "crowdnav":
             traj = jnp.where(detected[..., None] > 0, positions, crowdnav.MISSING)
             output, predicted = crowdnav.predict(params, self.config, traj[None],
@@ -110,7 +119,9 @@ class ConstantVelocity:
     pred_len: int = 5
     uses_key: ClassVar[bool] = False
 
-    def predict(self, params, key, positions, detected, truth=None):
+    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+                detected: jax.Array, truth: TruthFn | None = None
+                ) -> tuple[jax.Array, jax.Array]:
         now, last = positions[:, -1], positions[:, -1] - positions[:, -2]
         steps = jnp.arange(1, self.pred_len + 1)[:, None, None]
         return (now[None] + steps * last[None])[None], last_two_detected(detected)
@@ -124,7 +135,9 @@ class Standing:
     pred_len: int = 5
     uses_key: ClassVar[bool] = False
 
-    def predict(self, params, key, positions, detected, truth=None):
+    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+                detected: jax.Array, truth: TruthFn | None = None
+                ) -> tuple[jax.Array, jax.Array]:
         futures = jnp.broadcast_to(positions[None, None, :, -1],
                                    (1, self.pred_len, *positions[:, -1].shape))
         return futures, last_two_detected(detected)
@@ -138,7 +151,9 @@ class Truth:
     pred_len: int = 5
     uses_key: ClassVar[bool] = False
 
-    def predict(self, params, key, positions, detected, truth=None):
+    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+                detected: jax.Array, truth: TruthFn | None = None
+                ) -> tuple[jax.Array, jax.Array]:
         if truth is None:
             raise ValueError("Truth predicts only inside a simulator, which gives `truth`")
         return jnp.swapaxes(truth(), 0, 1)[None], last_two_detected(detected)

@@ -15,7 +15,8 @@ to replay the release's Gumbel and normal draws in the parity tests); both share
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+import dataclasses
+from typing import NamedTuple
 
 import flax
 import jax
@@ -25,7 +26,7 @@ from gst_jax import graph, noise
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.gumbel import sample_gumbel
-from gst_jax.model import GST, Controls, heads
+from gst_jax.model import GST, Controls, Params, heads
 
 __all__ = ["Controls", "RolloutNoise", "RolloutOutput", "observed_edge_probabilities", "rollout",
            "rollout_with_noise"]
@@ -66,11 +67,11 @@ class RolloutOutput:
     edge_probs: jax.Array
     sampled_edges: jax.Array
     predicted_mask: jax.Array
-    attention: Any = None
+    attention: jax.Array | None = None
 
 
-def rollout(params, key: jax.Array, batch: SceneBatch, config: ModelConfig, controls: Controls,
-            *, hard: bool, deterministic: bool, return_attention: bool = False,
+def rollout(params: Params, key: jax.Array, batch: SceneBatch, config: ModelConfig,
+            controls: Controls, *, hard: bool, deterministic: bool, return_attention: bool = False,
             observed_edge_probs: jax.Array | None = None, mean: bool = False) -> RolloutOutput:
     """Predict `config.pred_len` steps for every pedestrian of `batch`, drawing noise from `key`.
 
@@ -83,7 +84,7 @@ def rollout(params, key: jax.Array, batch: SceneBatch, config: ModelConfig, cont
                     observed_edge_probs=observed_edge_probs, mean=mean)
 
 
-def observed_edge_probabilities(params, batch: SceneBatch, config: ModelConfig,
+def observed_edge_probabilities(params: Params, batch: SceneBatch, config: ModelConfig,
                                 controls: Controls, *, steps_at_once: int | None = None
                                 ) -> jax.Array:
     """Edge probabilities of the observed steps without dropout, (B, T_obs, N, G, N+1).
@@ -114,7 +115,7 @@ def _observed_inputs(window: SceneBatch, obs_len: int):
             node_mask)
 
 
-def rollout_with_noise(params, noise: RolloutNoise, batch: SceneBatch, config: ModelConfig,
+def rollout_with_noise(params: Params, noise: RolloutNoise, batch: SceneBatch, config: ModelConfig,
                        controls: Controls, *, hard: bool, deterministic: bool = True,
                        dropout_key: jax.Array | None = None,
                        return_attention: bool = False) -> RolloutOutput:
@@ -149,14 +150,16 @@ class PredictionCarry(NamedTuple):
     key: jax.Array
 
 
+# vmap's axes: the trees of the outputs and of the noise with each field's window axis in
+# place of its array (so the ignores: ints where the fields are typed arrays).
 # Where the window axis of each output sits (attention is (layers, B, S, heads, N, L)).
-_OUTPUT_AXES = RolloutOutput(displacements=0, mu=0, sigma=0, corr=0, edge_probs=0,
-                             sampled_edges=0, predicted_mask=0, attention=1)
+_OUTPUT_AXES = RolloutOutput(displacements=0, mu=0, sigma=0, corr=0, edge_probs=0,  # type: ignore[arg-type]
+                             sampled_edges=0, predicted_mask=0, attention=1)  # type: ignore[arg-type]
 # The window axis of recorded noise (gumbel_pred and normal are step-major).
-_NOISE_AXES = RolloutNoise(gumbel_obs=0, gumbel_pred=1, normal=1)
+_NOISE_AXES = RolloutNoise(gumbel_obs=0, gumbel_pred=1, normal=1)  # type: ignore[arg-type]
 
 
-def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: SceneBatch,
+def _rollout(params: Params, key: jax.Array, recorded: RolloutNoise | None, batch: SceneBatch,
              config: ModelConfig, controls: Controls, *, hard: bool, deterministic: bool,
              return_attention: bool, observed_edge_probs: jax.Array | None = None,
              mean: bool = False) -> RolloutOutput:
@@ -170,13 +173,15 @@ def _rollout(params, key: jax.Array, recorded: RolloutNoise | None, batch: Scene
 
     in_axes = (0, None if recorded is None else _NOISE_AXES, 0,
                None if observed_edge_probs is None else 0)
-    out_axes = _OUTPUT_AXES if return_attention else _OUTPUT_AXES.replace(attention=None)
+    out_axes = (_OUTPUT_AXES if return_attention
+                else dataclasses.replace(_OUTPUT_AXES, attention=None))
     return jax.vmap(one_window, in_axes=in_axes, out_axes=out_axes)(
         noise.window_keys(key, batch.window_index), recorded, batch, observed_edge_probs)
 
 
-def _rollout_window(params, key: jax.Array, recorded: RolloutNoise | None, window: SceneBatch,
-                    config: ModelConfig, controls: Controls, *, hard: bool, deterministic: bool,
+def _rollout_window(params: Params, key: jax.Array, recorded: RolloutNoise | None,
+                    window: SceneBatch, config: ModelConfig, controls: Controls, *, hard: bool,
+                    deterministic: bool,
                     return_attention: bool, observed_edge_probs: jax.Array | None,
                     mean: bool) -> RolloutOutput:
     """One window (the SceneBatch fields without their batch axis: positions (T, N, 2), ...)."""

@@ -39,6 +39,7 @@ def scene_figure(run: Run, data_config: DataConfig, index: int, out: Path, *, sa
     """Observed, true and K predicted paths of a test window with the graphs of sample 0 at
     the last observed step and in the middle of the prediction."""
     window, batch, prediction = predict_window(run, data_config, index, samples, seed)
+    assert prediction.sampled_adjacency is not None, "predict_window predicts the graphs"
     obs_len = run.model_config.obs_len
     positions, mask = batch.positions[0], batch.position_mask[0]
     predicted_paths = prediction.positions[:, 0]                           # (K, P, N, 2)
@@ -70,6 +71,7 @@ def attention_figure(run: Run, data_config: DataConfig, index: int, agent: int, 
                      seed: int = 0) -> Path:
     """One agent's selection probabilities over its neighbours and the ghost, per step."""
     window, batch, prediction = predict_window(run, data_config, index, 1, seed)
+    assert prediction.edge_probs is not None, "predict_window predicts the graphs"
     if not 0 <= agent < window.num_pedestrians:
         raise RunError(f"agent {agent} out of range: the window has {window.num_pedestrians} "
                        "pedestrians")

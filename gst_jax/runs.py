@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
 
 from gst_jax import pretrained
 from gst_jax.config import DataConfig, Member, ModelConfig, TrainConfig
 from gst_jax.errors import RunError
 from gst_jax.io.workdir import RUNS, WorkDir
-from gst_jax.model import weights
+from gst_jax.model import Params, weights
 from gst_jax.training.members import member_config, stacked_shape, unstack
 from gst_jax.training.state import abstract_train_state
 
@@ -29,7 +28,7 @@ class Run:
     model_config: ModelConfig
     data_config: DataConfig
     train_config: TrainConfig
-    params: Any
+    params: Params
     epoch: int
     workdir: WorkDir | None
 

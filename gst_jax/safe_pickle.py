@@ -252,7 +252,11 @@ def _numpy_scalar(dtype, data=None):
 
 
 def _admit(table: dict[str, Callable]) -> dict[tuple[str, str], Any]:
-    return {tuple(name.rsplit(".", 1)): _Admitted(name, f) for name, f in table.items()}
+    admitted = {}
+    for name, f in table.items():
+        module, attribute = name.rsplit(".", 1)
+        admitted[module, attribute] = _Admitted(name, f)
+    return admitted
 
 
 # Builtins that protocol 2 and 3 pickles name (protocol 2 as `__builtin__`, Python 2's name).

@@ -9,9 +9,12 @@ jitted code and the data layer read the same rule from one place.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+if TYPE_CHECKING:       # the fields' type only: a batch holds jax arrays inside jitted code
+    import jax
 
 
 class SceneBatch(NamedTuple):
@@ -30,12 +33,12 @@ class SceneBatch(NamedTuple):
         their keep mask there, its width P a bucket size. None: any slot may be predicted.
     """
 
-    positions: np.ndarray
-    position_mask: np.ndarray
-    node_mask: np.ndarray
-    scene_mask: np.ndarray
-    window_index: np.ndarray
-    predicted_slots: np.ndarray | None = None
+    positions: np.ndarray | jax.Array
+    position_mask: np.ndarray | jax.Array
+    node_mask: np.ndarray | jax.Array
+    scene_mask: np.ndarray | jax.Array
+    window_index: np.ndarray | jax.Array
+    predicted_slots: np.ndarray | jax.Array | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:

@@ -51,8 +51,8 @@ def bucket_size(num_pedestrians: int, buckets: Sequence[int] = BUCKETS) -> int:
 
 
 def pad_windows(windows: Sequence[Window], num_pedestrians: int, batch_size: int | None = None,
-                window_index: Sequence[int] | None = None, *, predicted_slots: int | None = None,
-                observed_only: bool = False) -> SceneBatch:
+                window_index: Sequence[int] | np.ndarray | None = None, *,
+                predicted_slots: int | None = None, observed_only: bool = False) -> SceneBatch:
     """Stack windows into a SceneBatch of N = num_pedestrians slots and B = batch_size scenes.
 
     Missing scenes (when batch_size > len(windows)) are all-zero with scene_mask 0.
@@ -106,7 +106,7 @@ def training_batches(window_set: WindowSet, *, batch_size: int = 16, seed: int =
                         pad_to=pad_to)
 
 
-def pack_step(windows: Sequence[Window], window_index: Sequence[int],
+def pack_step(windows: Sequence[Window], window_index: Sequence[int] | np.ndarray,
               shared_slots: int = 16, slots_multiple: int = 1, *,
               pad_to: int | None = None) -> PackedStep:
     """A step's windows in micro-batches: those of up to SHARED_MICRO_BATCH_MAX observed

@@ -117,7 +117,8 @@ class _Rates:
     the common ones (COMMON_FPS) that give a rate the model's is a divisor of."""
 
     def __init__(self, fps: float | None, frame_step: int, model_hz: float, assumed: bool):
-        self.fps, self.assumed = fps, assumed
+        # 0 where no rate was read: then there is no other rate either, nor a division by it.
+        self.fps, self.assumed = fps or 0.0, assumed
         self.others = [] if not fps else [
             other for other in COMMON_FPS
             if not math.isclose(other, fps) and other / frame_step >= model_hz * (1 - 1e-6)

@@ -220,7 +220,7 @@ def no_windows_message(window_set: WindowSet, config: DataConfig, split: str,
         parts.append(f"the windows of {', '.join(long)} all go to other splits "
                      f"({_split_rule(config)})")
     if short:
-        top = max(short, key=longest.get)
+        top = max(short, key=lambda path: longest[path])
         of = " of the others" if long else ""
         where = "" if len(paths) == 1 else f", in {Path(top).name}"
         parts.append(f"{_window_needs(grid)}, and the longest track{of} is "

@@ -104,8 +104,9 @@ def read_text_tracks(path: str | Path, *, drop_off_grid: bool = False,
     if first is None:
         return _build_tracks(path, [], drop_off_grid)
     split = _comma_fields if "," in first[1] else str.split
-    header = split(first[1])
-    if any(_is_number(field) for field in header):
+    first_fields = split(first[1])
+    header: list[str] | None = first_fields
+    if any(_is_number(field) for field in first_fields):
         header, lines = None, _chain(first, lines)
     where = _column_indices(path, first[0], header, parse_columns(columns) if columns else None)
     bare = header is None and not columns       # the ETH/UCY format: exactly frame ped x y
@@ -159,18 +160,20 @@ def _column_indices(path: Path, line_number: int, header: list[str] | None,
                     columns: tuple[int | str, ...] | None) -> tuple[int, ...]:
     """The 0-based columns of frame, pedestrian id, x, y."""
     names = [name.strip().lower() for name in header] if header is not None else None
+    shown = ", ".join(header) if header is not None else ""          # for the messages
     if columns is None:
         if names is None:
             return (0, 1, 2, 3)
-        columns = []
+        named = []
         for role in ROLES:
             found = [name for name in HEADER_NAMES[role] if name in names]
             if not found:
-                raise DataError(f"{path}:{line_number}: the header ({', '.join(header)}) names no "
+                raise DataError(f"{path}:{line_number}: the header ({shown}) names no "
                                 f"{role} column ({' / '.join(HEADER_NAMES[role])}); say which "
                                 "columns hold frame, id, x, y with --columns (e.g. "
                                 "--columns frame,id,x,y or 1,2,8,9)")
-            columns.append(found[0])
+            named.append(found[0])
+        columns = tuple(named)
     indices = []
     for column in columns:
         if isinstance(column, int):
@@ -180,7 +183,7 @@ def _column_indices(path: Path, line_number: int, header: list[str] | None,
                             "the file has no header line (its first line holds numbers); "
                             "number the columns from 1 instead")
         elif column not in names:
-            raise DataError(f"{path}:{line_number}: the header ({', '.join(header)}) has no "
+            raise DataError(f"{path}:{line_number}: the header ({shown}) has no "
                             f"column {column!r}")
         else:
             indices.append(names.index(column))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 from gst_jax.config import DataConfig, TimeGrid
 from gst_jax.data.protocols import has_validation, load_split, why_no_window
@@ -14,8 +15,9 @@ def split_stats(config: DataConfig, scenes: list[str], grid: TimeGrid = TimeGrid
     why}}}` for the given scenes; the last names the files that gave a split no window, and
     why (`why_no_window`)."""
     splits = ("train", "val", "test") if has_validation(config) else ("train", "test")
-    result = {"protocol": f"{config.protocol}, obs {grid.obs_len}, pred {grid.pred_len}",
-              "scenes": {}, "files_without_windows": {}}
+    result: dict[str, Any] = {
+        "protocol": f"{config.protocol}, obs {grid.obs_len}, pred {grid.pred_len}",
+        "scenes": {}, "files_without_windows": {}}
     for scene in scenes:
         scene_config = dataclasses.replace(config, scene=scene)
         result["scenes"][scene] = {}

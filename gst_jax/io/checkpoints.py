@@ -101,10 +101,10 @@ class Checkpointer:
             lambda leaf: jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=here), like_state)
         candidates = [epoch] if epoch is not None else sorted(self._manager.all_steps(),
                                                               reverse=True)
-        problems = []
+        problems: list[str] = []
         for candidate in candidates:
             restored, problem = self._restore_verified(candidate, abstract)
-            if problem is None:
+            if restored is not None:                    # (the checkpoint, None)
                 if problems:
                     warnings.warn(f"{self._directory}: using the checkpoint of epoch "
                                   f"{candidate}; skipped " + "; ".join(problems), stacklevel=2)
@@ -280,7 +280,8 @@ def _failures_quiet(then: Callable[[], Any]) -> Iterator[None]:
                 logging.getLogger(name).setLevel(logging.CRITICAL + 1)
             # Exceptions in threads, unraisable ones and coroutines never awaited: the
             # failure is already being reported.
-            threading.excepthook = sys.unraisablehook = lambda *_: None
+            threading.excepthook = lambda *_: None
+            sys.unraisablehook = lambda *_: None
             warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
             with contextlib.suppress(Exception):
                 then()

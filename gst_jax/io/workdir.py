@@ -32,7 +32,7 @@ import subprocess
 import time
 import warnings
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Any, Iterator, Literal, Sequence, overload
 
 import jax
 
@@ -76,8 +76,9 @@ def code_version() -> str:
 def run_config(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
                members: Sequence[Member] | None = None) -> dict:
     """The JSON description of a run (or sweep), stored in its work dir and checkpoints."""
-    config = {"model": dataclasses.asdict(model_config), "data": dataclasses.asdict(data_config),
-              "train": dataclasses.asdict(train_config)}
+    config: dict[str, Any] = {"model": dataclasses.asdict(model_config),
+                              "data": dataclasses.asdict(data_config),
+                              "train": dataclasses.asdict(train_config)}
     if members is not None:
         config["members"] = [dataclasses.asdict(m) for m in members]
     return config
@@ -210,6 +211,10 @@ class WorkDir:
             raise RunError(f"no checkpoint in {self.path} (expected {directory}/<epoch>)")
         return Checkpointer(directory, create=create)
 
+    @overload
+    def selected_checkpointer(self, *, create: Literal[True] = True) -> Checkpointer: ...
+    @overload
+    def selected_checkpointer(self, *, create: bool) -> Checkpointer | None: ...
     def selected_checkpointer(self, *, create: bool = True) -> Checkpointer | None:
         """The epoch a fine-tuning selected (`gst_jax.training.selection`); with `create=False`,
         None where there is none."""

@@ -6,6 +6,7 @@
 from __future__ import annotations
 
 import functools
+from typing import Any, Mapping
 
 import flax.linen as nn
 import jax
@@ -20,6 +21,11 @@ from gst_jax.model.layers import DenseParams, torch_dense
 from gst_jax.model.recurrent import MaskedLSTMCell
 from gst_jax.model.selector import EdgeSelector, nearest_candidates, sample_edges
 from gst_jax.model.temporal import TemporalConvReadout
+
+Params = Mapping[str, Any]
+"""A model's parameters: Flax's tree of named modules down to their arrays, as `init_params`
+makes them and checkpoints, `gst_jax.runs.Run` and the shipped models hold them
+(`params["tcn"]["time_conv_0"]["kernel"]`)."""
 
 
 class GST(nn.Module):
@@ -76,7 +82,7 @@ class GST(nn.Module):
         full = jnp.concatenate([edges, jnp.zeros_like(edges[..., :1])], axis=-1)
         first_head = jnp.arange(self.config.head_slots) == 0
         as_edges = jnp.where(first_head[:, None], full[..., None, :], 0.0)
-        with_ghost_key = False
+        with_ghost_key: bool | jax.Array = False
         if self.config.selects_edges:
             if edge_probs is None:
                 edge_probs = self.edge_selector(node_embedding, edge_features,
@@ -140,7 +146,7 @@ def _gaussian(raw: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
 # One program: initialised op by op, the model took 9 s of every training's start on a CPU
 # (2 s from the compilation cache); the parameters are the same to the bit.
 @functools.partial(jax.jit, static_argnums=0)
-def init_params(config: ModelConfig, key: jax.Array):
+def init_params(config: ModelConfig, key: jax.Array) -> Params:
     """Fresh parameters (PyTorch-style initialisation) for `config`."""
     n, steps = 4, (1, config.obs_len)
     node_mask = jnp.ones(steps + (n,))

@@ -37,7 +37,7 @@ import numpy as np
 from gst_jax import resources
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
-from gst_jax.model import Controls
+from gst_jax.model import Controls, Params
 from gst_jax.predict import chunking as _chunking
 from gst_jax.predict.checks import (
     CANDIDATES_PAY_ABOVE,
@@ -85,8 +85,8 @@ class Prediction:
     mu: jax.Array
     sigma: jax.Array
     corr: jax.Array
-    sampled_adjacency: Any
-    edge_probs: Any
+    sampled_adjacency: jax.Array | None
+    edge_probs: jax.Array | None
     predicted_mask: jax.Array
 
 
@@ -123,7 +123,7 @@ class Predictor:
         self._programs: dict[tuple[int, int | None], Any] = {}
         self._chunkings: dict[tuple, Chunking] = {}
 
-    def __call__(self, params, key: jax.Array, batch: SceneBatch,
+    def __call__(self, params: Params, key: jax.Array, batch: SceneBatch,
                  controls: Controls | None = None) -> Prediction:
         args = (params, key, batch, controls)
         if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(args)):
@@ -131,7 +131,7 @@ class Predictor:
         chunking = self.chunking(*args)
         return self._program(chunking.samples_at_once, chunking.observed_steps_at_once)(*args)
 
-    def chunking(self, params, key: jax.Array, batch: SceneBatch,
+    def chunking(self, params: Params, key: jax.Array, batch: SceneBatch,
                  controls: Controls | None = None) -> Chunking:
         """The chunking of this batch's shape, chosen (and compiled) on its first call, which
         announces a large crowd (`crowd_notice`)."""
@@ -185,7 +185,7 @@ def _jitted_predict(config: ModelConfig, num_samples: int, with_graph: bool, mea
     steps = (config.obs_len, config.obs_len + config.pred_len)
 
     @jax.jit
-    def predict(params, key: jax.Array, batch: SceneBatch,
+    def predict(params: Params, key: jax.Array, batch: SceneBatch,
                 controls: Controls | None = None) -> Prediction:
         if batch.positions.shape[1] not in steps:
             raise ValueError(f"the batch has {batch.positions.shape[1]} steps; expected "

@@ -57,20 +57,28 @@ def choose(measure: Callable[[int, int | None], Chunking], num_samples: int, bud
     if whole.bytes_needed is None or whole.bytes_needed <= target:
         return whole
     least = measure(1, 1)
-    if available is not None and least.bytes_needed > available[0]:
-        raise DataError(f"{what} needs {size(least.bytes_needed)} at least (one sample at a "
+    least_bytes = _bytes_needed(least)
+    if available is not None and least_bytes > available[0]:
+        raise DataError(f"{what} needs {size(least_bytes)} at least (one sample at a "
                         f"time); {size(available[0])} is available ({available[1]}); use "
                         "fewer people per scene or more memory")
     # The need grows linearly with the samples at once (XLA: 0.16 + 0.31 c GiB at
     # N = 300); the slope through `whole` overestimates it where the observed steps at
     # once dominate, and every candidate is measured before it is chosen.
-    per_sample = (whole.bytes_needed - least.bytes_needed) / max(num_samples - 1, 1)
+    per_sample = (whole.bytes_needed - least_bytes) / max(num_samples - 1, 1)
     while True:
-        room = CHUNKING_SLACK * target - least.bytes_needed
+        room = CHUNKING_SLACK * target - least_bytes
         chunk = min(num_samples, 1 + int(room // max(per_sample, 1)))
         if chunk <= 1:
             return least
         candidate = measure(chunk, 1)
-        if candidate.bytes_needed <= target:
+        candidate_bytes = _bytes_needed(candidate)
+        if candidate_bytes <= target:
             return candidate
-        per_sample = (candidate.bytes_needed - least.bytes_needed) / (chunk - 1)
+        per_sample = (candidate_bytes - least_bytes) / (chunk - 1)
+
+
+def _bytes_needed(chunking: Chunking) -> int:
+    """A smaller chunking's need, known where the whole program's is (the same compiler)."""
+    assert chunking.bytes_needed is not None, "XLA estimated the whole program, not this one"
+    return chunking.bytes_needed

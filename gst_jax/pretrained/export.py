@@ -23,7 +23,7 @@ from gst_jax.config import CROWD, CROWD_SCENES, DataConfig, ModelConfig, TrainCo
 from gst_jax.errors import RunError
 from gst_jax.evaluation import evaluate_params
 from gst_jax.io.workdir import run_config
-from gst_jax.model import weights
+from gst_jax.model import Params, weights
 from gst_jax.pretrained import ROOT
 from gst_jax.runs import Run, load_model
 
@@ -42,7 +42,7 @@ def check_data_config(meta: dict) -> DataConfig:
     return DataConfig.from_dict(meta["check"].get("data", meta["data"]))
 
 
-def check_aoe(config: ModelConfig, params, data_config: DataConfig) -> float:
+def check_aoe(config: ModelConfig, params: Params, data_config: DataConfig) -> float:
     """AOE of the fixed-key check (CHECK) on the first windows of the test split."""
     test_set = data.load_split(data_config, "test", config.grid)
     test_set = test_set.subset(range(min(CHECK["windows"], len(test_set))))

@@ -16,16 +16,10 @@ from pathlib import Path
 
 from gst_jax import cli
 from gst_jax.runs import load_model
+from gst_jax.simulate.paper import study
 from gst_jax.simulate.paper.encounters import format_encounters
 from gst_jax.simulate.paper.loop import MODEL_HUMANS, ORCA_HUMANS
 from gst_jax.simulate.paper.scenarios import SCENARIOS
-from gst_jax.simulate.paper.study import (
-    format_markdown,
-    run_encounter_study,
-    run_scenarios,
-    step_models,
-    time_grid,
-)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -54,15 +48,16 @@ def main(argv: list[str] | None = None) -> None:
 
 def simulate(args) -> None:
     runs = [load_model(spec) for spec in args.runs]
-    models, out = step_models(runs, args.edge_heads), Path(args.workdir)
-    settings = dict(grid=time_grid(runs), seed=args.seed, humans=args.humans)
+    models, out = study.step_models(runs, args.edge_heads), Path(args.workdir)
+    settings = dict(grid=study.time_grid(runs), seed=args.seed, humans=args.humans)
+    rows: dict | list[dict]                 # the encounter study's, or a row per scenario run
     if args.encounters:
-        rows, _ = run_encounter_study(models, args.encounters, out, **settings)
+        rows, _ = study.run_encounter_study(models, args.encounters, out, **settings)
         table, written = format_encounters(rows), "encounters.json and encounters.png"
     else:
         names = list(SCENARIOS) if args.scenario == "all" else [args.scenario]
-        rows = run_scenarios(models, names, out, animate=args.animate, **settings)
-        table = format_markdown(rows)
+        rows = study.run_scenarios(models, names, out, animate=args.animate, **settings)
+        table = study.format_markdown(rows)
         written = f"results.json and one {'PNG and GIF' if args.animate else 'PNG'} per run"
     if args.json:
         print(json.dumps(rows, indent=2))

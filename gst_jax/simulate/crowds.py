@@ -55,15 +55,15 @@ def simulate_crowd(config: CrowdConfig, seed: int) -> tuple[np.ndarray, np.ndarr
     position = _points_on_circle(rng, h, config.arena_radius, config.human_radius)
     goal = -position + rng.normal(0.0, 0.5, (h, 2))            # across the circle
     velocity = np.zeros((h, 2))
-    positions = [position]
+    steps = [position]
     for _ in range(round(config.duration_s / config.step_s)):
         arrived = np.linalg.norm(goal - position, axis=-1) < config.human_radius
         if arrived.any():
             goal[arrived] = _points_on_circle(rng, int(arrived.sum()), config.arena_radius, 0.0)
         velocity = _avoiding_velocity(position, velocity, goal, speed, config, rng)
         position = position + velocity * config.step_s
-        positions.append(position)
-    positions = np.stack(positions)
+        steps.append(position)
+    positions = np.stack(steps)
     return positions, np.linalg.norm(positions, axis=-1) <= config.sensor_range
 
 

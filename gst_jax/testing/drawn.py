@@ -47,11 +47,12 @@ def saved_figures() -> Iterator[dict[Path, Figure]]:
             saved[Path(fname)] = self
         return original(self, fname, *args, **kwargs)
 
-    Figure.savefig = recording
+    # Patching the method is the point (mypy refuses assigning to one).
+    Figure.savefig = recording  # type: ignore[method-assign]
     try:
         yield saved
     finally:
-        Figure.savefig = original
+        Figure.savefig = original  # type: ignore[method-assign]
 
 
 def line_data(ax, color=None) -> list[np.ndarray]:
@@ -81,7 +82,7 @@ def bar_intervals(ax) -> list[np.ndarray]:
     return intervals
 
 
-def errorbar_data(ax) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def errorbar_data(ax) -> dict[str | None, tuple[np.ndarray, np.ndarray]]:
     """Each labelled `ax.errorbar` series of `ax`: its (n, 2) points and the half-heights
     (n,) of its vertical error bars."""
     series = {}
@@ -98,7 +99,7 @@ def errorbar_data(ax) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def _rgb(image) -> np.ndarray:
     if isinstance(image, (str, os.PathLike)):
         import matplotlib.image
-        image = matplotlib.image.imread(image)
+        image = matplotlib.image.imread(os.fspath(image))
     image = np.asarray(image)
     if image.dtype == np.uint8:
         image = image / 255.0

@@ -150,15 +150,15 @@ def new_velocity(lines, max_speed, preferred):
 def orca_velocity(i, positions, velocities, radii, max_speed, preferred, time_horizon,
                   max_neighbours, neighbour_dist, step_s):
     """Agent i's new velocity among agents given as lists of 2-tuples and floats."""
-    nearby = []
+    within = []
     for j, position in enumerate(positions):
         if j == i:
             continue
         offset = _sub(position, positions[i])
         distance_sq = _dot(offset, offset)
         if distance_sq < neighbour_dist ** 2:
-            nearby.append((distance_sq, j))
-    nearby = [j for _, j in sorted(nearby)][:max_neighbours]
+            within.append((distance_sq, j))
+    nearby = [j for _, j in sorted(within)][:max_neighbours]
     lines = [avoidance_line(_sub(positions[j], positions[i]), _sub(velocities[i], velocities[j]),
                             radii[i] + radii[j], velocities[i], time_horizon, step_s)
              for j in nearby]

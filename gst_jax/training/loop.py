@@ -23,6 +23,7 @@ import math
 import time
 import warnings
 from functools import partial
+from pathlib import Path
 from typing import Any, Callable
 
 import jax
@@ -219,7 +220,7 @@ def load_train_set(data_config: DataConfig, train_config: TrainConfig,
 
 
 def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
-        workdir: str | WorkDir, *, progress: Progress | None = None,
+        workdir: str | Path | WorkDir, *, progress: Progress | None = None,
         devices: Devices | None = None) -> dict:
     """Train (or resume) one run in `workdir`; returns the summary also written there.
     devices: each step's scenes are split over them (`gst_jax.parallel`). A fine-tuning
@@ -271,7 +272,7 @@ def fit(model_config: ModelConfig, data_config: DataConfig, train_config: TrainC
                    "final_loss": records[-1]["loss"],
                    "wall_time_s": time.perf_counter() - start, "train_windows": len(train_set),
                    "config": config}
-        if selection is not None:
+        if selection is not None and source is not None:        # a selection has a source
             summary["fine_tuning"] = selection.report(source, state, data_config)
         workdir.write_summary(summary)
     return summary

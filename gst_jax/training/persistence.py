@@ -119,7 +119,7 @@ class Saves:
                            f"half-written is used: {self.rerun}") from None
 
 
-def _os_error_reason(error: BaseException) -> str | None:
+def _os_error_reason(error: BaseException | None) -> str | None:
     """Why the system refused a write behind `error` ('No space left on device'), which orbax
     and tensorstore wrap in other exceptions (tensorstore names only its errno), or None."""
     seen = set()
@@ -154,6 +154,7 @@ def resume(init_state: Callable[[], TrainState], saves: Saves, config: dict, epo
         else:
             check_same_run(restored.config, config, saves.workdir)
             state, records = restored.state, restored.records
+            assert restored.progress is not None, "an interrupted epoch's save holds its progress"
             last_epoch, so_far = restored.epoch - 1, EpochSoFar.from_json(restored.progress)
             saves.noted(f"epoch {restored.epoch} at step {so_far.steps_done}"
                         if so_far.steps_done else f"epoch {last_epoch}")

@@ -84,6 +84,7 @@ class Selection:
         """The selection, and on the test windows (20 runs each, the same draws) the selected
         model, the starting one and constant velocity."""
         best = self.best()
+        assert best is not None, "a report follows a selection"
         with contextlib.closing(self.workdir.selected_checkpointer()) as saved:
             selected = saved.restore(jax.eval_shape(lambda: state)).state
         report = {"from": source.name, "selected_epoch": best["epoch"],

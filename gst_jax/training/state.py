@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import optax
 
 from gst_jax.config import ModelConfig, TrainConfig
-from gst_jax.model import Controls, init_params
+from gst_jax.model import Controls, Params, init_params
 from gst_jax.training.schedules import make_schedule
 
 
@@ -25,8 +25,8 @@ from gst_jax.training.schedules import make_schedule
 class TrainState:
     """Everything that changes during training. A pytree, so it can be jitted, vmapped, saved."""
 
-    params: Any
-    opt_state: Any
+    params: Params
+    opt_state: Any   # optax's state for `make_optimizer` (optax ships no types: Any for mypy)
     step: jax.Array  # () int32, optimiser steps taken
 
 

@@ -21,12 +21,13 @@ from gst_jax import augment, losses
 from gst_jax.config import ModelConfig
 from gst_jax.data import PackedStep, SceneBatch
 from gst_jax.graph import drop_partially_detected
+from gst_jax.model import Params
 from gst_jax.parallel import Devices
 from gst_jax.rollout import rollout
 from gst_jax.training.state import HParams, TrainState, make_optimizer
 
 
-def training_loss(params, key: jax.Array, batch: SceneBatch, config: ModelConfig,
+def training_loss(params: Params, key: jax.Array, batch: SceneBatch, config: ModelConfig,
                   hparams: HParams, *, rotate: bool, num_scenes: jax.Array | None = None
                   ) -> jax.Array:
     """Sum of the per-scene training losses of `batch`'s real scenes divided by `num_scenes`
@@ -98,8 +99,8 @@ class TrainStep:
         self._update = jax.jit(update, donate_argnums=0)
         self._zeros = jax.jit(zeros)
 
-    def loss_and_grads(self, params, key: jax.Array, step: PackedStep, hparams: HParams
-                       ) -> tuple[jax.Array, Any]:
+    def loss_and_grads(self, params: Params, key: jax.Array, step: PackedStep, hparams: HParams
+                       ) -> tuple[jax.Array, Params]:
         """The step's mean loss and its gradient, summed over the micro-batches."""
         num_scenes = jnp.float32(step.num_scenes)
         loss, grads = self._zeros(params)

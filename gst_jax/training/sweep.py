@@ -16,6 +16,7 @@ import dataclasses
 import json
 import resource
 import time
+from pathlib import Path
 from typing import Any, Sequence
 
 import jax
@@ -57,8 +58,8 @@ def member_hparams(config: ModelConfig, train_config: TrainConfig, members: Sequ
 
 
 def fit_sweep(config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,
-              members: Sequence[Member], workdir: str | WorkDir, *, eval_samples: int = 20,
-              max_eval_windows: int = 0, progress: Progress | None = None,
+              members: Sequence[Member], workdir: str | Path | WorkDir, *,
+              eval_samples: int = 20, max_eval_windows: int = 0, progress: Progress | None = None,
               devices: Devices | None = None) -> dict:
     """Train (or resume) every member in `workdir`, evaluate each on the test split, and write
     results.{json,csv,md} and figures. Returns the results dict. devices: the members are

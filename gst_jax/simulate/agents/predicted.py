@@ -12,7 +12,7 @@ import jax.numpy as jnp
 
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch, node_mask_from_positions
-from gst_jax.model import Controls
+from gst_jax.model import Controls, Params
 from gst_jax.rollout import rollout
 
 # A model: (positions (T_obs, A, 2), mask (T_obs, A), key) -> next displacement (A, 2).
@@ -25,7 +25,7 @@ def constant_velocity_model(positions: jax.Array, mask: jax.Array, key: jax.Arra
     return (positions[-1] - positions[-2]) * both[:, None]
 
 
-def gst_model(params, config: ModelConfig, controls: Controls) -> StepModel:
+def gst_model(params: Params, config: ModelConfig, controls: Controls) -> StepModel:
     """The first predicted displacement of a GST (hard samples, no dropout)."""
     if config.recurrent:
         # The first displacement comes from the observed state, before any predicted step;

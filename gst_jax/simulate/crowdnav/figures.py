@@ -40,6 +40,7 @@ def animate_navigation(robot: np.ndarray, humans: np.ndarray, goal: np.ndarray, 
 
     path.parent.mkdir(parents=True, exist_ok=True)
     FuncAnimation(fig, draw, frames=len(robot), blit=True).save(
-        path, writer=PillowWriter(fps=2 / step_s), dpi=64)
+        # matplotlib's stubs want an int; a GIF takes any rate (frames 1000 / fps ms apart).
+        path, writer=PillowWriter(fps=2 / step_s), dpi=64)  # type: ignore[arg-type]
     plt.close(fig)
     return path

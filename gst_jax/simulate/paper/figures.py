@@ -58,7 +58,8 @@ def animate_run(positions: np.ndarray, scenario: Scenario, path: Path, title: st
 
     path.parent.mkdir(parents=True, exist_ok=True)
     FuncAnimation(fig, draw, frames=num_steps, blit=True).save(
-        path, writer=PillowWriter(fps=fps), dpi=80)
+        # matplotlib's stubs want an int; a GIF takes any rate (frames 1000 / fps ms apart).
+        path, writer=PillowWriter(fps=fps), dpi=80)  # type: ignore[arg-type]
     plt.close(fig)
     return path
 
