@@ -32,7 +32,7 @@ The task is CrowdNav++'s default (Shuijing725/CrowdNav_Prediction_AttnGraph, com
   first, 15 for a human not detected; the detection mask in id order and the number
   detected (at least 1).
 
-Predictions come from `gst_jax.stream.predict_slots` over each human's last obs_len detected
+Predictions come from `gst_jax.stream_core.predict_slots` over each human's last obs_len detected
 positions (CrowdNav++'s 5), repeat each human's last displacement (CONSTANT_VELOCITY), hold
 each human where it stands (STANDING: a planner without a predictor) or are the simulator's
 own next positions (TRUTH: every human moved on by the rules above, its goal kept, the robot
@@ -77,7 +77,7 @@ from gst_jax.errors import RunError
 from gst_jax.predictors import GST, ConstantVelocity, Predictor, Standing, Truth
 from gst_jax.simulate.agents import motion
 from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
-from gst_jax.stream import StreamState, adapt, init_state, update_regions
+from gst_jax.stream_core import StreamState, adapt, init_state, update_regions
 
 # Outcomes of a step (info["outcome"]), CrowdNav++'s info classes.
 NOTHING, REACH_GOAL, COLLISION, TIMEOUT, DISCOMFORT = range(5)
