@@ -16,7 +16,7 @@ import os
 import sys
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from gst_jax.config import (
     DETECTION,
@@ -57,7 +57,7 @@ def positive_int(text: str) -> int:
 FIELD = "config_field"
 
 
-def field_type(config_class, name: str) -> Callable[[str], object]:
+def field_type(config_class, name: str) -> Callable[[str], Any]:
     """An argparse type for a config field: the text read as the field's kind and held to its
     rule (`gst_jax.config.Rule`), refused in the rule's words ("must be at least 1, got 0")."""
     rule = rules(config_class)[name]
@@ -280,7 +280,7 @@ def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
     """--edge-heads (one n, or a comma-separated list for sweeps), --no-ghost, --output,
     --temporal, the widths and depth, and the time grid (--step, --obs-len, --pred-len)."""
-    from gst_jax.model.heads import HEADS       # only commands that build a model load jax
+    from gst_jax.model.heads import HEADS  # only commands that build a model load jax
 
     group = parser.add_argument_group("model")
     m = ModelConfig()
@@ -406,8 +406,7 @@ def add_humans_flags(parser: argparse.ArgumentParser, *, mix: bool = False) -> N
     """--humans, --reactive, --num-humans, --shift: how the navigation task's humans walk
     (`simulate.crowdnav.environment.CrowdNav`); with `mix`, left out they mean every
     condition of the training mix (`simulate.crowdnav.crowds.MIX`)."""
-    from gst_jax.simulate.crowdnav.environment import (NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT,
-                                                       EnvParams)
+    from gst_jax.simulate.crowdnav.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT, EnvParams
 
     default = (lambda value: None) if mix else (lambda value: value)
     said = (lambda value: "the mix's") if mix else (lambda value: value)
@@ -468,7 +467,8 @@ def parse_edge_heads(text: str) -> list[int]:
     try:
         values = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integers, got {text!r}") from None
     choices = ",".join(map(str, EDGE_HEAD_CHOICES))
     if not values or any(v not in EDGE_HEAD_CHOICES for v in values):
         raise argparse.ArgumentTypeError(f"values must be among {choices}, got {text!r}")

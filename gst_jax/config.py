@@ -38,7 +38,8 @@ SCHEDULES = ("paper", "compressed", "finetune")
 # What fine-tuning (`train --init MODEL`) changes unless told otherwise: a validation split to
 # select its epoch on, the model's end temperature and a learning rate ten times below the
 # paper's (docs/own-data.md, "Fine-tuning").
-FINE_TUNING = {"protocol": "paper-val", "schedule": "finetune", "learning_rate": 1e-4}
+FINE_TUNING: dict[str, Any] = {"protocol": "paper-val", "schedule": "finetune",
+                               "learning_rate": 1e-4}
 # n, the number of edge heads; 0 = full connection (the paper's "F", no selector).
 EDGE_HEAD_CHOICES = (0, 1, 2, 4, 8, 16)
 # Which pedestrians a sweep observes (its --fully-detected-only): everyone (the paper's

@@ -21,7 +21,7 @@ import dataclasses
 import functools
 import inspect
 import time
-from typing import Iterator
+from typing import Iterable, Iterator, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -83,7 +83,7 @@ class Recording:
     best: tuple[int, int, np.ndarray, Snapshot] | None
 
 
-def record(run, streams: list[Iterator[FrameRows]], *, calibration: float = 0.3,
+def record(run, streams: Sequence[Iterable[FrameRows]], *, calibration: float = 0.3,
            convention: str = "gst", seed: int = 0, progress: Progress | None = None
            ) -> Recording:
     """Play the streams (iterators of frames, one after another, each a fresh stream) through
@@ -284,7 +284,7 @@ def aci_bound(method: str, pooled: bool, options: tuple, counted: np.ndarray,
     return ((1 + gamma + delay * gamma) / (gamma * np.maximum(counted, 1))).tolist()
 
 
-def play(run, streams: list[Iterator[FrameRows]], *, method: str, alpha: float = 0.1,
+def play(run, streams: Sequence[Iterable[FrameRows]], *, method: str, alpha: float = 0.1,
          pooled: bool = True, calibration: float = 0.3, convention: str = "gst",
          seed: int = 0, bonferroni: bool = False, progress: Progress | None = None
          ) -> tuple[dict, Snapshot | None]:

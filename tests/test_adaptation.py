@@ -79,8 +79,12 @@ def test_the_environment_corrects_its_predictions_online_after_a_speed_shift():
     """CrowdNav(adaptation=SpeedScale()) inside the jitted step: constant velocity's
     predictions (its last displacement) of humans who walk 2x faster from 2 s are corrected
     upward once the faster steps are scored; before the shift the scale stays near 1."""
-    from gst_jax.simulate.crowdnav.environment import (CONSTANT_VELOCITY, SPEED_SHIFT, CrowdNav,
-                                                       EnvParams)
+    from gst_jax.simulate.crowdnav.environment import (
+        CONSTANT_VELOCITY,
+        SPEED_SHIFT,
+        CrowdNav,
+        EnvParams,
+    )
 
     env = CrowdNav(8, CONSTANT_VELOCITY, shift=SPEED_SHIFT, adaptation=adaptation.SpeedScale())
     params = EnvParams(shift_at_s=2.0, speed_factor=2.0)

@@ -311,7 +311,7 @@ def test_each_method_learns_a_k_step_prediction_only_k_steps_later():
               for name, method in methods.items()}
     feed = conformal.score_buffer_init(num_tracks=1, horizon=horizon)
     issued_at, came_back = [], []            # the radii (P,) issued at t; what came back at t
-    for t, d in enumerate(distances):
+    for d in distances:
         feed, delayed = conformal.score_buffer_update(
             feed, np.zeros((1, horizon, 2)), np.ones(1, bool), np.array([[d, 0.0]]),
             np.ones(1, bool))

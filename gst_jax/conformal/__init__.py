@@ -83,21 +83,32 @@ functions against them.
 from gst_jax.conformal._src.aci import ACIState, aci
 from gst_jax.conformal._src.base import BATCH_MODES, LOSSES, OUTPUTS, OnlineConformal
 from gst_jax.conformal._src.binomial import clopper_pearson
-from gst_jax.conformal._src.delayed import (DelayedScores, ScoreBufferState, record_issued,
-                                            reset_slots, score_buffer_init,
-                                            score_buffer_update)
+from gst_jax.conformal._src.delayed import (
+    DelayedScores,
+    ScoreBufferState,
+    record_issued,
+    reset_slots,
+    score_buffer_init,
+    score_buffer_update,
+)
 from gst_jax.conformal._src.dtaci import DtACIState, dtaci
 from gst_jax.conformal._src.paths import path_errors, path_scales, simultaneous
 from gst_jax.conformal._src.pid import PIDState, pid
 from gst_jax.conformal._src.regions import ONLINE_METHODS, Regions
 from gst_jax.conformal._src.split import split_radius
-from gst_jax.conformal._src.whole_path import (JointCoverage, PathRegion, joint_coverage,
-                                               path_scores, paths_inside, step_quantiles,
-                                               whole_path_region)
+from gst_jax.conformal._src.whole_path import (
+    JointCoverage,
+    PathRegion,
+    joint_coverage,
+    path_scores,
+    paths_inside,
+    step_quantiles,
+    whole_path_region,
+)
 
-__all__ = ["ACIState", "DelayedScores", "DtACIState", "JointCoverage", "ONLINE_METHODS",
-           "OnlineConformal", "PIDState", "PathRegion", "Regions", "ScoreBufferState", "aci",
-           "clopper_pearson", "dtaci", "joint_coverage", "path_errors", "path_scales",
-           "path_scores", "paths_inside", "pid", "record_issued", "reset_slots",
+__all__ = ["ACIState", "BATCH_MODES", "DelayedScores", "DtACIState", "JointCoverage", "LOSSES",
+           "ONLINE_METHODS", "OUTPUTS", "OnlineConformal", "PIDState", "PathRegion", "Regions",
+           "ScoreBufferState", "aci", "clopper_pearson", "dtaci", "joint_coverage", "path_errors",
+           "path_scales", "path_scores", "paths_inside", "pid", "record_issued", "reset_slots",
            "score_buffer_init", "score_buffer_update", "simultaneous", "split_radius",
            "step_quantiles", "whole_path_region"]

@@ -9,12 +9,9 @@ jitted code and the data layer read the same rule from one place.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
-import numpy as np
-
-if TYPE_CHECKING:       # the fields' type only: a batch holds jax arrays inside jitted code
-    import jax
+from gst_jax.arrays import BatchArray
 
 
 class SceneBatch(NamedTuple):
@@ -33,12 +30,12 @@ class SceneBatch(NamedTuple):
         their keep mask there, its width P a bucket size. None: any slot may be predicted.
     """
 
-    positions: np.ndarray | jax.Array
-    position_mask: np.ndarray | jax.Array
-    node_mask: np.ndarray | jax.Array
-    scene_mask: np.ndarray | jax.Array
-    window_index: np.ndarray | jax.Array
-    predicted_slots: np.ndarray | jax.Array | None = None
+    positions: BatchArray
+    position_mask: BatchArray
+    node_mask: BatchArray
+    scene_mask: BatchArray
+    window_index: BatchArray
+    predicted_slots: BatchArray | None = None
 
     @property
     def shape(self) -> tuple[int, int, int]:

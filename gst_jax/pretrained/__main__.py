@@ -43,7 +43,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def command(args, command_line: str) -> None:
     if args.command == "export":
-        from gst_jax.pretrained import export   # evaluation code, only when exporting
+        from gst_jax.pretrained import export  # evaluation code, only when exporting
         given = dict(source=args.source, licence=args.licence, licence_files=args.licence_file,
                      command=command_line)
         check = args.check_data and DataConfig(scene=data_name(args.check_data),

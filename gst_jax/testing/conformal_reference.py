@@ -42,7 +42,8 @@ def aci(scores, mask, alpha: float, gamma: float, window: int,
     miss ("sequential"); radius = the (1 - alpha_t) empirical quantile of the last `window`
     scores, +inf when alpha_t <= 0 or none were seen, 0 when alpha_t >= 1. A step without
     scores changes nothing. Returns radii (T+1,), levels (T+1,), errs (T,) (NaN: no score)."""
-    level, recent = float(alpha), deque(maxlen=window)
+    level = float(alpha)
+    recent: deque[float] = deque(maxlen=window)
     radius = math.inf
     radii, levels, errs = [radius], [level], []
     for t in range(len(scores)):

@@ -29,8 +29,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from gst_jax.conformal._src.base import (BATCH_MODES, OnlineConformal, check_alpha,
-                                            scores_and_mask)
+from gst_jax.conformal._src.base import BATCH_MODES, OnlineConformal, check_alpha, scores_and_mask
 
 
 class ACIState(NamedTuple):
@@ -44,7 +43,7 @@ class ACIState(NamedTuple):
     radius: jax.Array
     scores: jax.Array
     ordered: jax.Array
-    count: jax.Array
+    count: jax.Array  # type: ignore[assignment]  # shadows tuple.count (mypy: an override)
     head: jax.Array
 
 

@@ -57,8 +57,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from gst_jax.conformal._src.base import (BATCH_MODES, LOSSES, OUTPUTS, OnlineConformal,
-                                            check_alpha, scores_and_mask)
+from gst_jax.conformal._src.base import (
+    BATCH_MODES,
+    LOSSES,
+    OUTPUTS,
+    OnlineConformal,
+    check_alpha,
+    scores_and_mask,
+)
 from gst_jax.conformal._src.split import start_radius
 
 
@@ -132,8 +138,8 @@ def dtaci(alpha: float = 0.1, gammas=(0.05, 0.1, 0.2), eta: float = 2.72,
                           radius=radius_of(thresholds, probs, expert))
 
     def update(state: DtACIState, scores: jax.Array, mask: jax.Array | None = None, *,
-               radius_in_force: jax.Array | None = None, uniform: jax.Array | None = None
-               ) -> tuple[DtACIState, jax.Array]:
+               radius_in_force: jax.Array | None = None,
+               uniform: jax.Array | float | None = None) -> tuple[DtACIState, jax.Array]:
         dtype = state.thresholds.dtype
         scores, mask = scores_and_mask(scores, mask, dtype)
         if uniform is None:

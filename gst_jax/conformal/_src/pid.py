@@ -42,7 +42,7 @@ class PIDState(NamedTuple):
 
     tracking: jax.Array
     misses: jax.Array
-    count: jax.Array
+    count: jax.Array  # type: ignore[assignment]  # shadows tuple.count (mypy: an override)
     radius: jax.Array
 
 
@@ -103,8 +103,8 @@ def pid(alpha: float = 0.1, eta: float = 0.02, k_i: float = 1.0, c_sat: float = 
             tracking, misses, count, _ = carry
             score, valid, in_force = x
             step = (score > in_force).astype(tracking.dtype) - alpha
-            new = (tracking + eta * step, misses + step, count + 1)
-            new = (*new, radius_of(*new))
+            tracked = (tracking + eta * step, misses + step, count + 1)
+            new = (*tracked, radius_of(*tracked))
             return tuple(jnp.where(valid, a, b) for a, b in zip(new, carry)), None
 
         carry = tuple(state)

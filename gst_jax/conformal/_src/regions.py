@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +26,8 @@ from gst_jax.conformal._src.pid import pid
 from gst_jax.errors import DataError
 
 # The online methods by name: each `name(alpha, **options) -> OnlineConformal`.
-ONLINE_METHODS = {"aci": aci, "dtaci": dtaci, "pid": pid}
+ONLINE_METHODS: dict[str, Callable[..., OnlineConformal]] = {"aci": aci, "dtaci": dtaci,
+                                                             "pid": pid}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,7 +100,9 @@ class Regions:
             scores, mask, issued = scores.T, mask.T, issued.T
         else:                                                   # per slot: a batch of one
             scores, mask, issued = scores[..., None], mask[..., None], issued[..., None]
-        update = self.online.update
+        online = self.online
+        assert online is not None, "a method's regions (None without one, returned above)"
+        update = online.update
         for _ in range(regions.radius.ndim):
             update = jax.vmap(update)
         regions, radii = update(regions, scores, mask, radius_in_force=issued,

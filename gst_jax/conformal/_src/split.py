@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from gst_jax.conformal._src.base import check_alpha, scores_and_mask
 
 
-def split_radius(scores: jax.Array, mask: jax.Array | None, alpha: float) -> jax.Array:
+def split_radius(scores: ArrayLike, mask: ArrayLike | None, alpha: float) -> jax.Array:
     """The split-conformal radius of calibration scores (n,) (`mask` (n,): the valid ones):
     the ceil((n+1)(1-alpha))-th smallest valid score, i.e. the ceil((n+1)(1-alpha))/n
     empirical quantile; +inf when that rank exceeds n (too few scores for the level) or

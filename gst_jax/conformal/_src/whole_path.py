@@ -35,10 +35,10 @@ complementarity program) that makes the regions small; here, by default, sigma_k
 empirical `scale_level` quantile (1 - alpha for None) of D1's observed horizon-k scores (the
 ceil(level n_k)-th smallest of its n_k), so that every step's normalised score has its D1
 quantile at 1 and no one step decides the max (a closed form, jit-able; not their program,
-so the shape may be less tight than theirs, the guarantee the same); a step D1 never observed gets sigma_k = +inf (r_k = +inf: it was never
-calibrated), and a zero quantile is raised to the smallest positive float. Or pass scales
-fixed elsewhere (other data, a model's own variance): then every path not marked `fit`
-calibrates q.
+so the shape may be less tight than theirs, the guarantee the same); a step D1 never
+observed gets sigma_k = +inf (r_k = +inf: it was never calibrated), and a zero quantile is
+raised to the smallest positive float. Or pass scales fixed elsewhere (other data, a model's
+own variance): then every path not marked `fit` calibrates q.
 
 Paths with no observed step are left out (they cannot miss). Missing steps are allowed
 elsewhere: a path is scored and judged on the steps it has, which keeps the guarantee as
@@ -75,7 +75,7 @@ class PathRegion(NamedTuple):
     scales: jax.Array
     quantile: jax.Array
     radii: jax.Array
-    count: jax.Array
+    count: jax.Array  # type: ignore[assignment]  # shadows tuple.count (mypy: an override)
 
 
 class JointCoverage(NamedTuple):
