@@ -16,14 +16,8 @@ from pathlib import Path
 from gst_jax import cli
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
+from gst_jax.simulate.crowdnav import navigation
 from gst_jax.simulate.crowdnav.crowds import write_crowds
-from gst_jax.simulate.crowdnav.navigation import (
-    CHUNK,
-    PLANNERS,
-    described_run,
-    evaluate_described,
-    summary,
-)
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 
@@ -32,8 +26,9 @@ def main(argv: list[str] | None = None) -> None:
     commands = parser.add_subparsers(dest="command", required=True)
     evaluate_parser = commands.add_parser("evaluate", help="a planner over test episodes")
     add = evaluate_parser.add_argument
-    add("--planner", choices=tuple(PLANNERS), default="mpc", help="mpc: GST's predictions; cv-mpc: "
-        "constant velocity; standing-mpc: people standing; truth-mpc: the simulator's (mpc)")
+    add("--planner", choices=tuple(navigation.PLANNERS), default="mpc", help="mpc: GST's "
+        "predictions; cv-mpc: constant velocity; standing-mpc: people standing; truth-mpc: the "
+        "simulator's (default: mpc)")
     cli.add_prediction_flags(evaluate_parser)
     cli.add_humans_flags(evaluate_parser)
     add("--episodes", type=cli.positive_int, default=500, help="episodes (default: 500)")
@@ -41,8 +36,8 @@ def main(argv: list[str] | None = None) -> None:
         default=256, help="plans scored per step (default: 256)")
     add("--seed", type=int, default=1000, help="seed of the episodes (default: 1000)")
     add("--gif", type=cli.count, default=0, metavar="COUNT", help="GIFs of the first episodes")
-    add("--chunk", type=cli.positive_int, default=CHUNK, help="episodes per compiled program "
-        "(0.27 MB each with GST; %(default)s)")
+    add("--chunk", type=cli.positive_int, default=navigation.CHUNK, help="episodes per "
+        "compiled program (0.27 MB each with GST; %(default)s)")
     add("--overwrite", action="store_true", help="replace a record of the same run")
     cli.add_output_flags(evaluate_parser, workdir_help="output directory (default: "
                          "runs/navigate)", workdir_default="runs/navigate", compilation_cache=True)
@@ -60,13 +55,15 @@ def navigate(args) -> None:
                                args.seed, Progress())
         return print(json.dumps(list(map(str, written))) if args.json else
                      f"written: {len(written)} files in {args.workdir}")
-    described = described_run(args.planner, args.regions, args.alpha, args.humans,
-                              args.reactive, args.num_humans, args.shift, args.model, args.adapt)
-    result = evaluate_described(described, load_model(args.model) if args.planner == "mpc"
-                                else None, args.plans, args.episodes, args.seed,
-                                Path(args.workdir), args.gif, overwrite=args.overwrite,
-                                chunk=args.chunk, progress=Progress())
-    print(json.dumps(result, indent=2) if args.json else summary(result, Path(args.workdir)))
+    described = navigation.described_run(args.planner, args.regions, args.alpha, args.humans,
+                                         args.reactive, args.num_humans, args.shift, args.model,
+                                         args.adapt)
+    gst = load_model(args.model) if args.planner == "mpc" else None
+    out = Path(args.workdir)
+    result = navigation.evaluate_described(described, gst, args.plans, args.episodes, args.seed,
+                                           out, args.gif, overwrite=args.overwrite,
+                                           chunk=args.chunk, progress=Progress())
+    print(json.dumps(result, indent=2) if args.json else navigation.summary(result, out))
 
 
 if __name__ == "__main__":

@@ -254,7 +254,7 @@ def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_m
     seen = {}
     monkeypatch.setattr(navigation, "evaluate", lambda env, params, planner, count, seed, out,
                         described, *rest, **options: seen.update(env=env, **described) or {})
-    monkeypatch.setattr(navigate, "summary", lambda result, out=None: "")
+    monkeypatch.setattr(navigation, "summary", lambda result, out=None: "")
     navigate.main(["evaluate", "--planner", "truth-mpc", "--reactive", "--num-humans", "35",
                    "--shift", "speed", "--workdir", str(tmp_path)])
     env = seen.pop("env")
