@@ -64,6 +64,8 @@ class Adaptation(Protocol):
     """An online correction (module docstring): a frozen dataclass (hashable, so that it is
     a static argument of the programs that use it) with these pure methods."""
 
+    def __hash__(self) -> int: ...
+
     def init(self, num_slots: int, horizon: int) -> AdaptationState: ...
 
     def observe(self, state: AdaptationState, positions: jax.Array, detected: jax.Array
@@ -71,6 +73,11 @@ class Adaptation(Protocol):
 
     def apply(self, state: AdaptationState, positions: jax.Array, predicted: jax.Array,
               last_step: jax.Array) -> jax.Array: ...
+
+    def issue(self, state: AdaptationState, positions: jax.Array, predicted: jax.Array,
+              last_step: jax.Array, valid: jax.Array) -> AdaptationState: ...
+
+    def reset_slots(self, state: AdaptationState, which: jax.Array) -> AdaptationState: ...
 
 
 class _Issues:

@@ -50,6 +50,7 @@ from gst_jax.conformal import Regions
 from gst_jax.data import bucket_size
 from gst_jax.data.batching import LARGEST_COORDINATE
 from gst_jax.errors import DataError
+from gst_jax.model import Params
 from gst_jax.predict import compile_checked
 from gst_jax.predictors import Predictor
 from gst_jax.stream_core import (
@@ -92,7 +93,8 @@ def _jitted_step(model: Predictor, regions: Regions | None, max_speed: float | N
     share its compiled programs."""
     step = make_step(model, regions, max_speed=max_speed, adaptation=adaptation)
 
-    def host_step(params, state: StreamState, frame: Frame, key: jax.Array, index: jax.Array):
+    def host_step(params: Params, state: StreamState, frame: Frame, key: jax.Array,
+                  index: jax.Array):
         return step(params, state, frame, jax.random.fold_in(key, index))
     return jax.jit(host_step)
 

@@ -29,17 +29,18 @@ import jax
 import jax.numpy as jnp
 
 from gst_jax import conformal, predictors
-from gst_jax.adaptation import Adaptation
+from gst_jax.adaptation import Adaptation, AdaptationState
+from gst_jax.arrays import BatchArray
 from gst_jax.conformal import Regions
 from gst_jax.data import SceneBatch
+from gst_jax.model import Params
 from gst_jax.predictors import GST, Predictor, last_two_detected
 
 # The id of a free slot; track ids are 0 or more (int32).
 FREE = -1
 
 
-@flax.struct.dataclass
-class StreamState:
+class StreamState(flax.struct.PyTreeNode):
     """The tracks a stream holds, in C slots (any leading axes: robots).
 
     track_ids: (C,) int32, FREE for a free slot.
@@ -66,9 +67,9 @@ class StreamState:
     dropped: jax.Array
     fresh: jax.Array
     restarted: jax.Array
-    feed: Any = None
-    regions: Any = None
-    adaptation: Any = None
+    feed: conformal.ScoreBufferState | None = None
+    regions: Any = None                 # the method's own state (ACIState, DtACIState, ...)
+    adaptation: AdaptationState | None = None
 
     @property
     def capacity(self) -> int:
@@ -80,9 +81,9 @@ class Frame(NamedTuple):
     (L,) int32 the ids whose tracks end before this frame's detections are matched (FREE
     pads; an id among them that is also detected now starts a new track), or None."""
 
-    ids: jax.Array
-    positions: jax.Array
-    lost: jax.Array | None = None
+    ids: BatchArray
+    positions: BatchArray
+    lost: BatchArray | None = None
 
 
 def init_state(capacity: int, obs_len: int, regions: Regions | None = None,
@@ -169,6 +170,7 @@ def update_regions(regions: Regions, state: StreamState, key: jax.Array,
     predictions (futures (K, P, C, 2), predicted (C,)). Returns the state, the radii issued
     with this step's predictions (C, P) and the delayed scores (scores, mask, issued:
     (C, P))."""
+    assert state.feed is not None, "a state made with regions (init_state) has a feed"
     feed = conformal.reset_slots(state.feed, new_slots)
     mean = jnp.moveaxis(futures.mean(axis=0), 1, 0)                           # (C, P, 2)
     feed, delayed = conformal.score_buffer_update(
@@ -182,7 +184,7 @@ def update_regions(regions: Regions, state: StreamState, key: jax.Array,
 StreamModel = GST
 
 
-def predict_slots(model: Predictor, params, key: jax.Array, state: StreamState
+def predict_slots(model: Predictor, params: Params | None, key: jax.Array, state: StreamState
                   ) -> tuple[jax.Array, jax.Array]:
     """Every slot's future from its history: (futures (K, P, C, 2), predicted (C,)), where
     predicted marks the tracks the model predicts (the others' futures are meaningless)."""
@@ -196,6 +198,7 @@ def adapt(adaptation: Adaptation, state: StreamState, futures: jax.Array, predic
     now, seen = state.positions[:, -1], state.detected[:, -1] > 0
     moved = last_two_detected(state.detected)
     last_step = jnp.where(moved[:, None], now - state.positions[:, -2], 0.0)
+    assert state.adaptation is not None, "a state made with an adaptation (init_state)"
     adapted_state = adaptation.observe(adaptation.reset_slots(state.adaptation, state.fresh),
                                        now, seen)
     per_slot = lambda sample: jnp.moveaxis(sample, 1, 0)                      # (C, P, 2)
@@ -216,10 +219,16 @@ def make_step(model: Predictor, regions: Regions | None = None, *,
     and delayed are None). max_speed (m/s): a known id seen farther than this speed allows
     over `step_s` seconds a step (default: the model's) since its last detection starts a new
     track (`observe`); None: never. jit it, vmap it over robots."""
-    step_s = step_s or model.config.step_s
-    max_jump = None if max_speed is None else max_speed * step_s
+    max_jump = None
+    if max_speed is not None:
+        if not step_s:              # the model's step; a predictor without a model has none
+            if not isinstance(model, GST):
+                raise ValueError("make_step: max_speed needs step_s where the predictor has no "
+                                 "model (its step)")
+            step_s = model.config.step_s
+        max_jump = max_speed * step_s
 
-    def step(params, state: StreamState, frame: Frame, key: jax.Array):
+    def step(params: Params | None, state: StreamState, frame: Frame, key: jax.Array):
         state = observe(state, frame, max_jump)
         predict_key, regions_key = jax.random.split(key)
         futures, predicted = predict_slots(model, params, predict_key, state)
