@@ -47,7 +47,7 @@ class Predictor(Protocol):
     @property
     def pred_len(self) -> int: ...
 
-    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+    def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None
                 ) -> tuple[jax.Array, jax.Array]: ...
 
@@ -88,10 +88,10 @@ class GST:
     def pred_len(self) -> int:
         return self.config.pred_len
 
-    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+    def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None
                 ) -> tuple[jax.Array, jax.Array]:
-        assert params is not None, "GST predicts with its model's parameters"
+        assert params is not None and key is not None, "GST predicts with its parameters and a key"
         if self.convention == "crowdnav":
             traj = jnp.where(detected[..., None] > 0, positions, crowdnav.MISSING)
             output, predicted = crowdnav.predict(params, self.config, traj[None],
@@ -119,7 +119,7 @@ class ConstantVelocity:
     pred_len: int = 5
     uses_key: ClassVar[bool] = False
 
-    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+    def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None
                 ) -> tuple[jax.Array, jax.Array]:
         now, last = positions[:, -1], positions[:, -1] - positions[:, -2]
@@ -135,7 +135,7 @@ class Standing:
     pred_len: int = 5
     uses_key: ClassVar[bool] = False
 
-    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+    def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None
                 ) -> tuple[jax.Array, jax.Array]:
         futures = jnp.broadcast_to(positions[None, None, :, -1],
@@ -151,7 +151,7 @@ class Truth:
     pred_len: int = 5
     uses_key: ClassVar[bool] = False
 
-    def predict(self, params: Params | None, key: jax.Array, positions: jax.Array,
+    def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None
                 ) -> tuple[jax.Array, jax.Array]:
         if truth is None:

@@ -42,9 +42,9 @@ class OrcaParams(NamedTuple):
     """An agent's ORCA settings (RVO2's names): seconds ahead within which collisions are
     avoided, neighbours considered, and how far away they may be."""
 
-    time_horizon: float = 5.0
+    time_horizon: float | jax.Array = 5.0       # arrays where traced (an episode's own)
     max_neighbours: int = 10
-    neighbour_dist: float = 10.0
+    neighbour_dist: float | jax.Array = 10.0
 
 
 def det(a: jax.Array, b: jax.Array) -> jax.Array:
@@ -57,8 +57,9 @@ def _normalized(v: jax.Array) -> jax.Array:
 
 
 def avoidance_line(relative_position: jax.Array, relative_velocity: jax.Array,
-                   combined_radius: jax.Array, velocity: jax.Array, time_horizon: float,
-                   step_s: float) -> tuple[jax.Array, jax.Array]:
+                   combined_radius: jax.Array, velocity: jax.Array,
+                   time_horizon: float | jax.Array, step_s: float
+                   ) -> tuple[jax.Array, jax.Array]:
     """The ORCA half-plane of one neighbour (vectorised over any leading axes): its point and
     direction. relative_position = p_j - p_i, relative_velocity = v_i - v_j, velocity = v_i.
 

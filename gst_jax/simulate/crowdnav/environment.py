@@ -69,11 +69,13 @@ from typing import Any, NamedTuple
 import flax
 import jax
 import jax.numpy as jnp
+from jax.typing import ArrayLike
 
 from gst_jax import conformal
 from gst_jax.adaptation import Adaptation
 from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
+from gst_jax.model import Params
 from gst_jax.predictors import GST, ConstantVelocity, Predictor, Standing, Truth
 from gst_jax.simulate.agents import motion
 from gst_jax.simulate.agents.orca import OrcaParams, orca_velocities
@@ -98,12 +100,11 @@ ORCA, SOCIAL_FORCE = "orca", "social_force"
 NO_SHIFT, SPEED_SHIFT, POLICY_SHIFT = "none", "speed", "policy"
 
 
-@flax.struct.dataclass
-class EnvParams:
+class EnvParams(flax.struct.PyTreeNode):
     """The task's numbers (CrowdNav++'s defaults) and the predictor's weights (None: no
     prediction). Every field may be traced, vmapped or changed between calls."""
 
-    predictor: Any = None
+    predictor: Params | None = None
     step_s: float = 0.25
     time_limit_s: float = 50.0
     arena_size: float = 6.0
@@ -136,8 +137,7 @@ class EnvParams:
     speed_factor: float = 1.5
 
 
-@flax.struct.dataclass
-class EnvState:
+class EnvState(flax.struct.PyTreeNode):
     """One episode (H humans, T = obs_len observed steps). Positions in metres, world frame.
 
     robot_position, robot_velocity, robot_goal: (2,); humans' position, velocity, goal: (H, 2);
@@ -221,8 +221,8 @@ class CrowdNav:
         (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor) whose time step is
         the environment's (RunError otherwise), another `Predictor` (CONSTANT_VELOCITY,
         STANDING, TRUTH) or None."""
-        humans = dict(human_policy=human_policy, reactive=reactive, shift=shift,
-                      adaptation=adaptation)
+        humans: dict[str, Any] = dict(human_policy=human_policy, reactive=reactive, shift=shift,
+                                      adaptation=adaptation)
         if predictor is None or hasattr(predictor, "predict"):
             return cls(num_humans, predictor, regions=regions, **humans), EnvParams()
         run, config, params = predictor, predictor.model_config, EnvParams()
@@ -295,9 +295,11 @@ class CrowdNav:
             state.human_radius)
         state = _respawn(respawn_key, state, params, arrived)
         if self.regions is not None:      # a new person's predictions start afresh
+            assert state.tracks.feed is not None, "tracks made with the regions have a feed"
             state = state.replace(tracks=state.tracks.replace(
                 feed=conformal.reset_slots(state.tracks.feed, arrived)))
         if self.adaptation is not None:
+            assert state.tracks.adaptation is not None, "tracks made with the adaptation"
             state = state.replace(tracks=state.tracks.replace(
                 adaptation=self.adaptation.reset_slots(state.tracks.adaptation, arrived)))
         return obs, state, reward, done, {**info, "replaced": arrived}
@@ -308,7 +310,7 @@ class CrowdNav:
         `reactive`). ORCA: towards its goal at 1 m/s (less within 1 m of it), at most its
         preferred speed; both `speed_factor` times more once a speed shift has begun."""
         shifted = state.time >= params.shift_at_s
-        factor = 1.0
+        factor: float | jax.Array = 1.0
         if self.shift == SPEED_SHIFT:
             factor = jnp.where(shifted, params.speed_factor, 1.0)
             state = state.replace(human_v_pref=state.human_v_pref * factor)
@@ -322,18 +324,21 @@ class CrowdNav:
 
     def _orca_velocities(self, state: EnvState, params: EnvParams, factor) -> jax.Array:
         preferred = motion.toward_goal(state.human_position, state.human_goal, factor)
-        agents = (state.human_position, state.human_velocity,
-                  state.human_radius + 0.01 + params.safety_space, state.human_v_pref, preferred)
+        agents: tuple[jax.Array, ...] = (
+            state.human_position, state.human_velocity,
+            state.human_radius + 0.01 + params.safety_space, state.human_v_pref, preferred)
         if self.reactive:         # the robot is one more agent, as CrowdNav++ adds it
-            robot = (state.robot_position, state.robot_velocity,
-                     params.robot_radius + 0.01 + params.safety_space, params.robot_v_pref,
-                     state.robot_velocity)
+            robot: tuple[ArrayLike, ...] = (
+                state.robot_position, state.robot_velocity,
+                params.robot_radius + 0.01 + params.safety_space, params.robot_v_pref,
+                state.robot_velocity)
             agents = tuple(jnp.concatenate([h, jnp.reshape(r, (1, *h.shape[1:]))])
                            for h, r in zip(agents, robot))
         count = agents[0].shape[0]
         orca = OrcaParams(params.time_horizon, count - 1, state.neighbour_dist)
-        return orca_velocities(*agents, jnp.ones(count, bool), orca,
-                               params.step_s)[:self.num_humans]
+        position, velocity, radius, max_speed, wanted = agents
+        return orca_velocities(position, velocity, radius, max_speed, wanted,
+                               jnp.ones(count, bool), orca, params.step_s)[:self.num_humans]
 
     def _truth(self, state: EnvState, params: EnvParams) -> jax.Array:
         """The humans' next `pred_len` positions (H, P, 2) by the environment's own rules:
