@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Union
 
 if TYPE_CHECKING:
     import jax
-    import numpy as np
+    import numpy
 
-BatchArray = Union["np.ndarray", "jax.Array"]
+# The names in full: the documentation (pdoc) resolves them where they are used.
+BatchArray = Union["numpy.ndarray", "jax.Array"]
