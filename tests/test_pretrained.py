@@ -71,9 +71,10 @@ def test_the_list_says_why_a_model_has_no_test_figures_instead_of_nan(capsys):
         if meta["test_metrics"]:
             assert f"AOE {meta['test_metrics']['aoe']:.3f} FOE " in line
         else:
+            checked_on = meta["check"].get("data", meta["data"])["scene"]
             assert f"AOE - FOE - (no test evaluation recorded: trained on {meta['data']['scene']}" \
                    f"; its fixed-key check: AOE {meta['check']['aoe']:.3f} on 4 test windows " \
-                   "of sim_crowds, 2 samples)" in line
+                   f"of {checked_on}, 2 samples)" in line
     assert "crowdnav_sj: epoch 100, AOE - FOE - " in listed
 
 
