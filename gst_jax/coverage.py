@@ -12,7 +12,8 @@ and mean radius are then measured on the frames after it, the same predictions f
 long-run coverage = the fraction of scored predictions whose observed position fell within
 the radius issued with them; whole-horizon coverage = the fraction of predictions with every
 step inside (`joint_coverage`; `simultaneous` calibrates discs for it, with
-`gst_jax.conformal.simultaneous`).
+`gst_jax.conformal.simultaneous`). The command's table and figure of a result are
+`gst_jax.coverage_report`'s.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ import numpy as np
 from gst_jax import conformal, data
 from gst_jax.config import DataConfig
 from gst_jax.data.readers import Tracks
-from gst_jax.figures import conformal_regions
 from gst_jax.progress import Progress
 from gst_jax.stream import Stream
 
@@ -294,38 +294,6 @@ def play(run, streams: Sequence[Iterable[FrameRows]], *, method: str, alpha: flo
     recording = record(run, streams, calibration=calibration, convention=convention,
                        seed=seed, progress=progress)
     return measure(recording, method, alpha, pooled, seed=seed, bonferroni=bonferroni)
-
-
-def draw(snapshot: Snapshot, result: dict, path, title: str):
-    """The snapshot's regions and the coverage per horizon step, as a figure at `path`."""
-    return conformal_regions(snapshot.history, snapshot.futures, snapshot.radii,
-                             snapshot.truth, result["coverage"], result["radius"],
-                             result.get("step_alpha", result["alpha"]), result["step_s"], path,
-                             title)
-
-
-def format_table(result: dict) -> str:
-    """`play`'s result (with model, scene and split) as the command prints it: per horizon
-    step the coverage, mean radius and the number of scores T; for ACI its bound, a figure
-    outside it marked with "!"; then the whole-horizon coverage."""
-    lines = [f"{result['model']} on {result['scene']} ({result['split']} split, "
-             f"{result['frames']} frames, the first {result['calibration_frames']} calibrating): "
-             f"{result['method']}, alpha {result['alpha']}"
-             + (f" (Bonferroni: {result['step_alpha']:.4g} a step)" if result["bonferroni"]
-                else "")
-             + (f", gamma {result['gamma']}" if result.get("bound") else ""),
-             "  step     s  coverage  radius (m)  scores (T)" +
-             ("     bound" if result.get("bound") else "")]
-    target = 1 - result.get("step_alpha", result["alpha"])
-    for k, (c, r, n) in enumerate(zip(result["coverage"], result["radius"], result["scores"])):
-        line = f"  {k + 1:4d} {(k + 1) * result['step_s']:5.2f}  {c:8.3f}  {r:10.3f}  {n:10d}"
-        if result.get("bound"):
-            bound = result["bound"][k]
-            line += f"  +-{bound:7.3f}" + (" !" if abs(c - target) > bound else "")
-        lines.append(line)
-    lines.append(f"  all {len(result['coverage'])} steps inside their discs: "
-                 f"{result['joint_coverage']:.3f} of {result['joint_predictions']} predictions")
-    return "\n".join(lines)
 
 
 @functools.partial(jax.jit, static_argnums=0)

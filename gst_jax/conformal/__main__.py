@@ -6,8 +6,8 @@ are fed one model step at a time (`gst_jax.stream`); every prediction (the mean 
 scored k steps later by its distance to the observed position. split: calibrated on the first
 --calibration of the frames, then fixed; aci / dtaci / pid: updated online from the scores as
 they arrive. Reported on the frames after --calibration: per horizon step the coverage (the
-fraction of scored predictions within the radius issued with them), the mean radius and
-ACI's finite-stream bound; then the share of predictions with every step inside its disc.
+fraction within the radius issued with them), the mean radius and ACI's finite-stream bound;
+then the share of predictions with every step inside its disc.
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ import itertools
 import json
 
 from gst_jax import cli
-from gst_jax.coverage import METHODS, draw, format_table, play, scene_streams
+from gst_jax.coverage import METHODS, play, scene_streams
+from gst_jax.coverage_report import draw, format_table
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 
@@ -42,10 +43,9 @@ def main(argv: list[str] | None = None) -> None:
                         "horizon step, as GenSafeNav's ROS 2 node (default: pooled per step)")
     parser.add_argument("--max-frames", type=cli.positive_int, default=None,
                         help="each file's first frames only, a quick look (default: all)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the graphs sampled "
-                        "(and of DtACI's expert draws) (default: 0)")
-    parser.add_argument("--figure", metavar="PNG", help="draw the regions of one frame and "
-                        "the coverage per horizon step here")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the graphs sampled and "
+                        "of DtACI's expert draws (default: 0)")
+    parser.add_argument("--figure", metavar="PNG", help="draw one frame's discs and the coverage")
     parser.add_argument("--json", action="store_true", help="print the result as JSON")
     cli.run(measure, parser, argv)
 
