@@ -8,6 +8,9 @@ Every field's rule (its type, range or choices, and its help) is written beside 
 `Rule` in the field's metadata (`setting`): config.json's checks (`gst_jax.model.weights`),
 the flags (`gst_jax.cli`) and the configs' own construction (`check`) all read that one rule,
 so that a value a flag takes is one a model file may hold, and the reverse.
+
+One job, though over 400 lines: every config's fields, each beside its rule, so that the
+rules of one setting are read in one place.
 """
 
 from __future__ import annotations
