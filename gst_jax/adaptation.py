@@ -89,8 +89,12 @@ class _Issues:
         `positions` (N, 2) with last observed steps `last_step` (N, 2)."""
         horizon = predicted.shape[1]
         steps = jnp.arange(1, horizon + 1)[None, :, None]
-        new = Issued(predicted - positions[:, None], steps * last_step[:, None], positions,
-                     valid)
+        # A slot not predicted may hold NaN (gst_jax's models mark "nobody" so), and a mask's
+        # 0 times NaN is NaN: such slots are kept as zeros.
+        keep = valid[:, None, None]
+        new = Issued(jnp.where(keep, predicted - positions[:, None], 0.0),
+                     jnp.where(keep, steps * last_step[:, None], 0.0),
+                     jnp.where(valid[:, None], positions, 0.0), valid)
         issued = jax.tree.map(lambda ring, one: jnp.concatenate([ring[1:], one[None]]),
                               state.issued, new)
         return state._replace(issued=issued)
@@ -110,8 +114,8 @@ def _matured(issued: Issued, positions: jax.Array, detected: jax.Array):
     row = horizon - k                                     # issued k steps ago
     predicted = issued.predicted[row, :, k - 1]           # (P, N, 2)
     constant_velocity = issued.constant_velocity[row, :, k - 1]
-    observed = positions[None] - issued.anchors[row]
     mask = issued.valid[row] & detected[None]
+    observed = jnp.where(mask[..., None], positions[None] - issued.anchors[row], 0.0)
     return predicted, constant_velocity, observed, mask
 
 

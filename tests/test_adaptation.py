@@ -100,3 +100,23 @@ def test_the_environment_corrects_its_predictions_online_after_a_speed_shift():
     assert np.all(np.abs(scales[:8] - 1.0) < 0.08)         # 1.05 at most, measured
     # The humans speed up over a few steps and CV lags each: corrected (1.19, measured).
     assert scales[9:].max() > 1.15
+
+
+@pytest.mark.parametrize("name", sorted(adaptation.METHODS))
+def test_a_slot_nobody_was_predicted_in_leaves_the_correction_finite(name):
+    """gst_jax's models give NaN where nobody is predicted: such a slot (not valid) must not
+    turn the pooled statistics into NaN (it did, and planned every prediction as NaN)."""
+    method = adaptation.METHODS[name]()
+    state = method.init(num_slots=2, horizon=3)
+    predicted = jnp.stack([jnp.tile(jnp.array([[1.0, 0.0]]), (3, 1)) * jnp.arange(1, 4)[:, None],
+                           jnp.full((3, 2), jnp.nan)])
+    for t in range(5):
+        now = jnp.array([[float(t), 0.0], [0.0, 0.0]])
+        state = method.observe(state, now, jnp.array([True, False]))
+        state = method.issue(state, now, predicted + now[:, None], jnp.array([[1.0, 0.0],
+                                                                             [0.0, 0.0]]),
+                             jnp.array([True, False]))
+    assert all(bool(jnp.isfinite(leaf).all()) for leaf in jax.tree.leaves(state))
+    adapted = method.apply(state, now, predicted + now[:, None], jnp.array([[1.0, 0.0],
+                                                                            [0.0, 0.0]]))
+    assert bool(jnp.isfinite(adapted[0]).all())
