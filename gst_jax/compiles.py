@@ -163,3 +163,9 @@ def check_cache_entries() -> None:
     if jax_cache.get_file_cache is not _checked_file_cache:
         jax_cache.get_file_cache = _checked_file_cache
         jax_cache.reset_cache()
+
+
+# Set on import: a process that runs gst_jax's models (`gst_jax.predict` imports this module)
+# reads and writes checked entries whatever set its cache folder (JAX_COMPILATION_CACHE_DIR
+# included), so that processes sharing a folder never take each other's entries for foreign.
+check_cache_entries()

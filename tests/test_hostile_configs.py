@@ -18,7 +18,9 @@ from gst_jax import pretrained
 from gst_jax.config import DataConfig, TimeGrid
 from gst_jax.data.protocols import data_files, default_data_dir, load_split
 from gst_jax.errors import DataError
+from gst_jax.evaluate import main as evaluate_main
 from gst_jax.model import weights
+from gst_jax.predict.__main__ import main as predict_main
 from gst_jax.prediction_files import write_predictions
 
 
@@ -34,9 +36,16 @@ def hostile_copy(tmp_path, **data) -> str:
     return str(folder)
 
 
-def evaluate(*argv) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "gst_jax.evaluate", *argv, "--max-windows",
-                           "2", "--samples", "2", "--no-kde"], capture_output=True, text=True)
+def refused(main, capsys, *argv) -> tuple[str, str]:
+    """A command run in this process that refuses: its one-line message and its stderr."""
+    with pytest.raises(SystemExit) as stop:
+        main(list(argv))
+    return str(stop.value), capsys.readouterr().err
+
+
+def evaluate(capsys, *argv) -> tuple[str, str]:
+    return refused(evaluate_main, capsys, *argv, "--max-windows", "2", "--samples", "2",
+                   "--no-kde")
 
 
 @pytest.mark.parametrize("scene", ["../../../../../../tmp/escape", "/tmp/escape", ".hidden",
@@ -46,28 +55,27 @@ def test_a_scene_is_a_name_not_a_path(scene):
         DataConfig(scene=scene)
 
 
-def test_a_model_whose_config_names_a_path_as_its_scene_is_refused_in_one_line(tmp_path):
+def test_a_model_whose_config_names_a_path_as_its_scene_is_refused_in_one_line(tmp_path,
+                                                                              capsys):
     model = hostile_copy(tmp_path, scene=f"../../../../../../{tmp_path}/escape")
     work = tmp_path / "work"
-    done = evaluate(model, "--workdir", str(work))
-    assert done.returncode == 1
-    assert done.stderr.strip().splitlines() == [
+    message, _ = evaluate(capsys, model, "--workdir", str(work))
+    assert message == (
         f"error: {model}/config.json: scene must be one of eth, hotel, univ, zara1, zara2, lcas, "
         f"wildtrack, crowd or a name of your own data (no / or \\, not starting with . or -, at "
-        f"most 120 characters), got '../../../../../../{tmp_path}/escape'"]
+        f"most 120 characters), got '../../../../../../{tmp_path}/escape'")
     assert not any(tmp_path.glob("escape*")) and not work.exists()
 
 
-def test_a_data_path_that_is_not_a_trajectory_file_is_never_read(tmp_path):
+def test_a_data_path_that_is_not_a_trajectory_file_is_never_read(tmp_path, capsys):
     secret = tmp_path / "shadow"
     secret.write_text("root:$6$secret:19000:0:99999:7:::\n")
     with pytest.raises(DataError, match="shadow: not a trajectory file"):
         data_files(str(secret))
-    done = evaluate(hostile_copy(tmp_path, data=str(secret), scene="shadow"))
-    assert done.returncode == 1 and "secret" not in done.stdout + done.stderr
-    assert f"data: {secret} (the model's own, named by its config" in done.stderr
-    assert done.stderr.strip().splitlines()[-1] == f"error: {secret}: not a trajectory file " \
-                                                   "(.txt, .csv or .ndjson)"
+    message, said = evaluate(capsys, hostile_copy(tmp_path, data=str(secret), scene="shadow"))
+    assert "secret" not in message + said
+    assert f"data: {secret} (the model's own, named by its config" in said
+    assert message == f"error: {secret}: not a trajectory file (.txt, .csv or .ndjson)"
 
 
 def test_a_fifo_or_device_is_not_data(tmp_path):
@@ -90,7 +98,7 @@ def predict(*argv, script: str = "") -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=600)
 
 
-def test_predict_refuses_an_out_that_is_its_data_or_not_a_regular_file(tmp_path):
+def test_predict_refuses_an_out_that_is_its_data_or_not_a_regular_file(tmp_path, capsys):
     data = tmp_path / "mine.txt"
     shutil.copy(default_data_dir() / "samples" / "crowd_10hz.txt", data)
     before = data.read_bytes()
@@ -106,10 +114,9 @@ def test_predict_refuses_an_out_that_is_its_data_or_not_a_regular_file(tmp_path)
                           "prediction file to write",
              str(tmp_path / "no" / "p.ndjson"): f"error: {tmp_path}/no: no such folder for --out"}
     for out, message in cases.items():
-        done = subprocess.run([sys.executable, "-m", "gst_jax.predict", "pretrained:hotel_d",
-                               "--data", str(data), "--fps", "10", "--units", "cm", "--out", out],
-                              capture_output=True, text=True, timeout=600)
-        assert (done.returncode, done.stderr.strip().splitlines()[-1]) == (1, message)
+        said, _ = refused(predict_main, capsys, "pretrained:hotel_d", "--data", str(data),
+                          "--fps", "10", "--units", "cm", "--out", out)
+        assert said == message
     assert data.read_bytes() == before and (tmp_path / "folder").is_dir()
     assert stat.S_ISFIFO((tmp_path / "fifo").stat().st_mode)
 

@@ -34,7 +34,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gst_jax import resources
+# compiles is imported for its effect: every persistent compilation cache this process opens
+# checks its entries (`gst_jax.compiles.check_cache_entries`), however its folder was set.
+from gst_jax import compiles, resources  # noqa: F401
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch
 from gst_jax.model import Controls, Params
