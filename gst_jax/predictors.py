@@ -112,12 +112,17 @@ def as_batch(positions: jax.Array, detected: jax.Array) -> SceneBatch:
 
 
 @dataclasses.dataclass(frozen=True)
-class ConstantVelocity:
-    """Each track's last displacement repeated over the horizon."""
+class _FromHistory:
+    """A predictor that reads only the histories: its grid, and no random draws."""
 
     obs_len: int = 5
     pred_len: int = 5
     uses_key: ClassVar[bool] = False
+
+
+@dataclasses.dataclass(frozen=True)
+class ConstantVelocity(_FromHistory):
+    """Each track's last displacement repeated over the horizon."""
 
     def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None
@@ -128,12 +133,8 @@ class ConstantVelocity:
 
 
 @dataclasses.dataclass(frozen=True)
-class Standing:
+class Standing(_FromHistory):
     """Everyone stays where they are: a planner without a predictor."""
-
-    obs_len: int = 5
-    pred_len: int = 5
-    uses_key: ClassVar[bool] = False
 
     def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None
@@ -144,12 +145,8 @@ class Standing:
 
 
 @dataclasses.dataclass(frozen=True)
-class Truth:
+class Truth(_FromHistory):
     """The simulator's own futures (`truth`): what no predictor can beat."""
-
-    obs_len: int = 5
-    pred_len: int = 5
-    uses_key: ClassVar[bool] = False
 
     def predict(self, params: Params | None, key: jax.Array | None, positions: jax.Array,
                 detected: jax.Array, truth: TruthFn | None = None

@@ -67,3 +67,14 @@ def _release_compiled_programs():
         step._last_train_step.cache_clear()
         jax.clear_caches()
         gc.collect()
+
+
+@pytest.fixture
+def own_compilation_cache():
+    """The test sets a compilation cache of its own; the session's is set back after it."""
+    folder = jax.config.jax_compilation_cache_dir
+    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
+    yield
+    jax.config.update("jax_compilation_cache_dir", folder)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
+    compiles.jax_cache.reset_cache()

@@ -18,18 +18,6 @@ from gst_jax.errors import DataError
 from gst_jax.private_folders import private_folder
 
 
-@pytest.fixture
-def own_compilation_cache():
-    """The test sets a compilation cache of its own; the session's is set back after it."""
-    folder = jax.config.jax_compilation_cache_dir
-    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
-    yield
-    jax.config.update("jax_compilation_cache_dir", folder)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
-    jax.clear_caches()
-    compiles.jax_cache.reset_cache()
-
-
 def test_a_new_cache_folder_is_made_for_its_user_alone(tmp_path):
     folder = private_folder(tmp_path / "new" / "xla")
     assert folder.is_dir() and stat.S_IMODE(folder.stat().st_mode) == 0o700

@@ -289,19 +289,6 @@ def sim_run():
     return load_model("pretrained:crowdnav_sim")
 
 
-@pytest.fixture
-def own_compilation_cache():
-    """The test sets a compilation cache of its own; the session's is set back after it."""
-    from jax.experimental.compilation_cache import compilation_cache
-
-    folder = jax.config.jax_compilation_cache_dir
-    threshold = jax.config.jax_persistent_cache_min_compile_time_secs
-    yield
-    jax.config.update("jax_compilation_cache_dir", folder)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", threshold)
-    compilation_cache.reset_cache()
-
-
 def walkers(count: int, steps: int, step_s: float = 0.25) -> np.ndarray:
     """(steps, count, 2) straight walks at up to 1.4 m/s from points of a 12 m square."""
     rng = np.random.default_rng(3)
