@@ -424,7 +424,8 @@ def add_humans_flags(parser: argparse.ArgumentParser, *, mix: bool = False) -> N
 
 
 def add_prediction_flags(parser: argparse.ArgumentParser) -> None:
-    """--model, --regions, --alpha, --adapt: what a simulated robot plans against."""
+    """--model, --regions, --alpha, --adapt, --fresh-tracks: what a simulated robot plans
+    against."""
     from gst_jax.adaptation import METHODS
     from gst_jax.simulate.crowdnav.navigation import DEFAULT_MODEL, REGIONS
 
@@ -439,6 +440,9 @@ def add_prediction_flags(parser: argparse.ArgumentParser) -> None:
                         help="correct the predictions online from their delayed scores: the "
                         "crowd's speed scale, or a recursive-least-squares blend of the model "
                         "and constant velocity (default: none)")
+    parser.add_argument("--fresh-tracks", action="store_true",
+                        help="a replaced human's history starts empty, as a tracker's new "
+                        "identity (default: it keeps its predecessor's, as in CrowdNav++)")
 
 
 def crowd_conditions(args: argparse.Namespace) -> tuple:

@@ -57,7 +57,7 @@ def navigate(args) -> None:
                      f"written: {len(written)} files in {args.workdir}")
     described = navigation.described_run(args.planner, args.regions, args.alpha, args.humans,
                                          args.reactive, args.num_humans, args.shift, args.model,
-                                         args.adapt)
+                                         args.adapt, args.fresh_tracks)
     gst = load_model(args.model) if args.planner == "mpc" else None
     out = Path(args.workdir)
     result = navigation.evaluate_described(described, gst, args.plans, args.episodes, args.seed,

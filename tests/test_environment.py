@@ -186,6 +186,22 @@ def test_humans_walk_at_1_m_s_capped_by_their_speed_change_goals_every_5_s_and_r
     np.testing.assert_allclose(after.human_goal[1], -after.human_position[1])
 
 
+@pytest.mark.parametrize("fresh_tracks", [False, True])
+def test_a_replaced_human_keeps_its_slots_history_unless_tracks_start_fresh(fresh_tracks):
+    """CrowdNav++ gives a replaced human its predecessor's slot and history, so that a
+    predictor sees one track jump across the scene; with fresh_tracks the slot's history
+    starts empty, as a tracker's new identity would."""
+    env = CrowdNav(4, environment.CONSTANT_VELOCITY, fresh_tracks=fresh_tracks)
+    state = _state(humans=[(2.0, 0.0)]).replace(
+        human_goal=jnp.array([[2.2, 0.0]] + [[FAR, FAR]] * 3), human_v_pref=jnp.ones(4))
+    step = jax.jit(env.step_env)
+    _, state, _, _, info = step(jax.random.key(0), state, jnp.zeros(2), PARAMS)
+    assert bool(info["replaced"][0]) and not np.asarray(info["replaced"][1:]).any()
+    history = np.asarray(state.tracks.detected[0])
+    assert history.sum() == (0 if fresh_tracks else 1)      # the predecessor, seen once
+    np.testing.assert_array_equal(state.tracks.detected[1:], 0)
+
+
 def test_social_force_humans_follow_crowdnavs_formula():
     # crowd_nav/policy/social_force.py with A = 2, B = 1, KI = 1, one 0.25 s step.
     env = CrowdNav(num_humans=4, human_policy=environment.SOCIAL_FORCE)

@@ -265,6 +265,13 @@ def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_m
     assert row_label({**seen, "alpha": 0.1}) == (
         "sampling MPC | truth (the simulator's) | DtACI 0.1 | ORCA, 35 of them, reactive, "
         "shift: speed")
+    navigate.main(["evaluate", "--planner", "cv-mpc", "--fresh-tracks", "--regions", "none",
+                   "--workdir", str(tmp_path)])
+    assert seen.pop("env").fresh_tracks and seen["fresh_tracks"]
+    assert record_name("cv-mpc", "none", "orca", 500, 1000, fresh_tracks=True) == (
+        "cv-mpc-none-freshtracks-episodes500-seed1000")
+    assert row_label({**seen, "alpha": 0.1}) == (
+        "sampling MPC | constant velocity, fresh tracks | none | ORCA")
     with pytest.raises(SystemExit, match="^error: --shift policy switches ORCA humans"):
         navigate.main(["evaluate", "--planner", "standing-mpc", "--humans", "social-force",
                        "--shift", "policy", "--workdir", str(tmp_path)])

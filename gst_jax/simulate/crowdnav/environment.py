@@ -187,7 +187,9 @@ class CrowdNav:
     `adaptation`, the predictions corrected online from their delayed scores
     (`gst_jax.adaptation`); with `regions`, conformal radii around the predicted steps
     (`gst_jax.conformal.Regions`); the humans walk by ORCA or SOCIAL_FORCE (`human_policy`),
-    seeing the robot where `reactive`, shifted by `shift`."""
+    seeing the robot where `reactive`, shifted by `shift`. A replaced human takes its
+    predecessor's slot and, as in CrowdNav++, its history; with `fresh_tracks` its history
+    starts empty, as a tracker's new identity would."""
 
     num_humans: int = 20
     model: Predictor | None = None
@@ -198,6 +200,7 @@ class CrowdNav:
     reactive: bool = False
     shift: str = NO_SHIFT
     adaptation: Adaptation | None = None
+    fresh_tracks: bool = False
 
     def __post_init__(self):
         if self.human_policy not in (ORCA, SOCIAL_FORCE):
@@ -216,13 +219,14 @@ class CrowdNav:
     @classmethod
     def with_predictor(cls, predictor, num_humans: int = 20, regions: Regions | None = None,
                        human_policy: str = ORCA, reactive: bool = False, shift: str = NO_SHIFT,
-                       adaptation: Adaptation | None = None) -> tuple["CrowdNav", EnvParams]:
+                       adaptation: Adaptation | None = None, fresh_tracks: bool = False
+                       ) -> tuple["CrowdNav", EnvParams]:
         """The environment and its params, predictions by `predictor`: a loaded model
         (`gst_jax.runs.load_model`; mean mode, as CrowdNav++'s predictor) whose time step is
         the environment's (RunError otherwise), another `Predictor` (CONSTANT_VELOCITY,
         STANDING, TRUTH) or None."""
         humans: dict[str, Any] = dict(human_policy=human_policy, reactive=reactive, shift=shift,
-                                      adaptation=adaptation)
+                                      adaptation=adaptation, fresh_tracks=fresh_tracks)
         if predictor is None or hasattr(predictor, "predict"):
             return cls(num_humans, predictor, regions=regions, **humans), EnvParams()
         run, config, params = predictor, predictor.model_config, EnvParams()
@@ -294,6 +298,9 @@ class CrowdNav:
         arrived = jnp.linalg.norm(state.human_goal - state.human_position, axis=-1) < (
             state.human_radius)
         state = _respawn(respawn_key, state, params, arrived)
+        if self.fresh_tracks:
+            state = state.replace(tracks=state.tracks.replace(detected=jnp.where(
+                arrived[:, None], 0.0, state.tracks.detected)))
         if self.regions is not None:      # a new person's predictions start afresh
             assert state.tracks.feed is not None, "tracks made with the regions have a feed"
             state = state.replace(tracks=state.tracks.replace(

@@ -56,19 +56,21 @@ PLANNERS = {"mpc": (None, "gst"), "cv-mpc": (CONSTANT_VELOCITY, "cv"),
 
 def described_run(planner: str, regions: str, alpha: float = 0.1, humans: str = "orca",
                   reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT,
-                  model: str | None = None, adaptation: str = "none") -> dict:
+                  model: str | None = None, adaptation: str = "none",
+                  fresh_tracks: bool = False) -> dict:
     """What names an evaluation and its record (`evaluate`'s `described`): the planner, its
     predictor as records name it (gst, cv, none: people standing, truth), the discs (REGIONS:
     a conformal method, "none", or "decision": no discs, a margin calibrated online), the
-    humans (`humans` "orca" or "social-force"), GST's model for planner mpc, and the online
-    correction of the predictions (`gst_jax.adaptation.METHODS`, or "none")."""
+    humans (`humans` "orca" or "social-force"), GST's model for planner mpc, the online
+    correction of the predictions (`gst_jax.adaptation.METHODS`, or "none"), and whether a
+    replaced human's history starts empty (`CrowdNav.fresh_tracks`)."""
     if shift == POLICY_SHIFT and humans != "orca":
         raise RunError("--shift policy switches ORCA humans to social force: it needs "
                        "--humans orca")
     return {"planner": planner, "predictor": PLANNERS[planner][1], "regions": regions,
             "alpha": alpha, "humans": humans, "reactive": reactive, "num_humans": num_humans,
             "shift": shift, "model": model if planner == "mpc" else None,
-            "adaptation": adaptation}
+            "adaptation": adaptation, **({"fresh_tracks": True} if fresh_tracks else {})}
 
 
 # What --regions takes: conformal discs, none, or a margin calibrated online.
@@ -86,7 +88,8 @@ def environment_for(described: dict, gst=None) -> tuple[CrowdNav, EnvParams]:
                                    described["num_humans"], regions,
                                    described["humans"].replace("-", "_"),
                                    described["reactive"], described["shift"],
-                                   None if adaptation == "none" else METHODS[adaptation]())
+                                   None if adaptation == "none" else METHODS[adaptation](),
+                                   described.get("fresh_tracks", False))
 
 
 def max_steps(params: EnvParams) -> int:
@@ -235,6 +238,7 @@ def row_label(record: dict) -> str:
         record["planner"], f"GST ({model_name(model)})")
     adapted = record.get("adaptation", "none")
     predictions += f", {adapted}" if adapted != "none" else ""
+    predictions += ", fresh tracks" if record.get("fresh_tracks") else ""
     method = {"dtaci": "DtACI", "aci": "ACI"}.get(record["regions"], record["regions"])
     discs = {"none": "none", DECISION: "calibrated margin"}.get(
         record["regions"], f"{method} {record['alpha']:g}")
@@ -284,7 +288,7 @@ def same_episodes(record: dict, out: Path) -> list[dict]:
         same = isinstance(other, dict) and "per_episode" in other and all(
             other.get(k) == record.get(k) for k in EPISODES_OF)
         setting_of = lambda r: (r["planner"], r["regions"], r.get("alpha"), r.get("model"),
-                                r.get("adaptation", "none"))
+                                r.get("adaptation", "none"), r.get("fresh_tracks", False))
         if same and setting_of(other) != setting_of(record):
             found.append(other)
     return found
@@ -308,7 +312,7 @@ def setting(record: dict) -> str:
     named = f" ({model_name(model)})" if model not in (None, DEFAULT_MODEL) else ""
     adapted = record.get("adaptation", "none")
     return (f"{record['predictor']}{named}" + (f" + {adapted}" if adapted != "none" else "")
-            + f" + {discs}")
+            + f" + {discs}" + (" (fresh tracks)" if record.get("fresh_tracks") else ""))
 
 
 def paired_lines(record: dict, others: list[dict]) -> list[str]:
@@ -329,10 +333,12 @@ def paired_lines(record: dict, others: list[dict]) -> list[str]:
 
 def record_name(planner: str, regions: str, humans: str, episodes: int, seed: int,
                 reactive: bool = False, num_humans: int = 20, shift: str = NO_SHIFT,
-                model: str | None = None, adaptation: str = "none") -> str:
+                model: str | None = None, adaptation: str = "none",
+                fresh_tracks: bool = False) -> str:
     """The stem of an evaluation's files: PLANNER-REGIONS[-HUMANS][-reactive][-humansN]
-    [-shiftS][-modelNAME][-adaptNAME]-episodesCOUNT-seedSEED (the defaults unnamed: 20 ORCA
-    humans who ignore the robot, no shift, GST's model DEFAULT_MODEL, no adaptation), so that
+    [-shiftS][-modelNAME][-adaptNAME][-freshtracks]-episodesCOUNT-seedSEED (the defaults
+    unnamed: 20 ORCA humans who ignore the robot, no shift, GST's model DEFAULT_MODEL, no
+    adaptation, CrowdNav++'s tracks), so that
     runs of other settings and lengths sit beside it."""
     return "-".join([planner, regions, *([humans] if humans != "orca" else []),
                      *(["reactive"] if reactive else []),
@@ -341,6 +347,7 @@ def record_name(planner: str, regions: str, humans: str, episodes: int, seed: in
                      *([f"model{model_name(model)}"] if model not in (None, DEFAULT_MODEL)
                        else []),
                      *([f"adapt{adaptation}"] if adaptation != "none" else []),
+                     *(["freshtracks"] if fresh_tracks else []),
                      f"episodes{episodes}", f"seed{seed}"])
 
 
@@ -376,7 +383,7 @@ def evaluate(env: CrowdNav, params: EnvParams, planner: SamplingMPC, count: int,
                        described.get("humans", "orca"), count, seed,
                        described.get("reactive", False), described.get("num_humans", 20),
                        described.get("shift", NO_SHIFT), described.get("model"),
-                       described.get("adaptation", "none"))
+                       described.get("adaptation", "none"), described.get("fresh_tracks", False))
     if (out / f"{name}.json").exists() and not overwrite:
         raise RunError(f"{out / name}.json exists: a run of the same {count} episodes; "
                        f"--overwrite replaces it, another --workdir keeps it")
