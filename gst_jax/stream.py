@@ -370,3 +370,9 @@ def _checked_frame(ids, positions, non_finite: str = "raise") -> tuple[np.ndarra
                         f"beyond {LARGEST_COORDINATE:.0e} m, where float32 loses millimetres: "
                         "subtract a local origin first")
     return ids[finite].astype(np.int32), positions[finite]
+
+
+if __name__ == "__main__":      # python -m gst_jax.stream replay ...: the stream's commands
+    from gst_jax.stream_commands import main
+
+    main()

@@ -214,7 +214,8 @@ COMMAND_MODULES = {
     "train": "gst_jax.train", "evaluate": "gst_jax.evaluate", "sweep": "gst_jax.sweep",
     "plot": "gst_jax.plot", "navigate": "gst_jax.navigate", "predict": "gst_jax.predict.__main__",
     "simulate": "gst_jax.simulate.__main__", "conformal": "gst_jax.conformal.__main__",
-    "data": "gst_jax.data.__main__", "pretrained": "gst_jax.pretrained.__main__"}
+    "data": "gst_jax.data.__main__", "pretrained": "gst_jax.pretrained.__main__",
+    "stream": "gst_jax.stream_commands"}
 COMMAND_LINE = re.compile(r"python3? -m gst_jax\.(\w+)((?:\\\n|[^`\n&|;])*)")
 FLAG = re.compile(r"(?<![\w-])--[a-z][\w-]*")
 

@@ -15,7 +15,7 @@ from pathlib import Path
 PACKAGE = Path(__file__).parents[1] / "gst_jax"
 # Command modules: argument parsing and printing around one library call.
 COMMANDS = {"gst_jax.train", "gst_jax.evaluate", "gst_jax.sweep", "gst_jax.plot", "gst_jax.cli",
-            "gst_jax.navigate"}
+            "gst_jax.navigate", "gst_jax.stream_commands"}
 
 
 # The layers of docs/architecture.md, bottom up: a module may import its own layer and those
@@ -69,10 +69,26 @@ def _is_command(module: str) -> bool:
     return module in COMMANDS or module.endswith(".__main__")
 
 
+def _is_main_block(node: ast.AST) -> bool:
+    """`if __name__ == "__main__":`, the block that runs only where the module is the program
+    (`python -m gst_jax.stream replay`), never where it is imported."""
+    return (isinstance(node, ast.If) and isinstance(node.test, ast.Compare)
+            and isinstance(node.test.left, ast.Name) and node.test.left.id == "__name__"
+            and any(isinstance(c, ast.Constant) and c.value == "__main__"
+                    for c in node.test.comparators))
+
+
+def _main_blocks(path: Path) -> list[ast.If]:
+    return [node for node in ast.parse(path.read_text()).body if _is_main_block(node)]
+
+
 def _imported_names(path: Path) -> set[str]:
-    """Every module named by an import statement of the file, anywhere in it."""
+    """Every module named by an import statement of the file, anywhere in it but in its
+    top-level `if __name__ == "__main__":` block (a command's, `_main_blocks`)."""
     names = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    tree = ast.parse(path.read_text())
+    tree.body = [node for node in tree.body if not _is_main_block(node)]
+    for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module:
@@ -183,6 +199,31 @@ def test_library_modules_import_no_command_and_parse_no_arguments():
         commands = sorted(name for name in imported if _is_command(name))
         assert not commands, f"{module} imports the command module(s) {commands}"
         assert "argparse" not in imported, f"{module} parses arguments; commands do that"
+
+
+def test_a_library_module_run_as_a_program_only_hands_over_to_a_command():
+    """A library module's `if __name__ == "__main__":` block (`python -m gst_jax.stream
+    replay`) imports nothing but a command module, whose `main` it calls: the layers above
+    never run inside the library, and the command stays where commands are checked."""
+    for module, path in MODULES.items():
+        if _is_command(module):
+            continue
+        for block in _main_blocks(path):
+            imports = [node for node in ast.walk(block)
+                       if isinstance(node, (ast.Import, ast.ImportFrom))]
+            named = {alias.name if isinstance(node, ast.Import) else node.module
+                     for node in imports for alias in node.names}
+            assert named and all(_is_command(name) for name in named), (
+                f"{module}'s __main__ block imports {sorted(map(str, named))}: only a command "
+                "module's main belongs there")
+
+
+def test_the_main_block_check_sees_a_main_block(tmp_path):
+    program = tmp_path / "program.py"
+    program.write_text("import numpy\n\nif __name__ == '__main__':\n"
+                       "    from gst_jax.train import main\n    main()\n")
+    assert _imported_names(program) == {"numpy"}
+    assert len(_main_blocks(program)) == 1
 
 
 def test_commands_are_thin():
