@@ -31,6 +31,14 @@ is any gst_jax model (the paper's, `crowdnav_sim`, ...) or CrowdNav++'s (`crowdn
 with its own input conventions). Conformal discs around the predictions are
 `gst_jax.conformal.Regions` (importable from here too), issued by `update_regions` from the
 stream's score buffer.
+
+Constant velocity with the same discs, the baseline a model has to beat, needs no model file:
+
+    stream = Stream(ConstantVelocity(obs_len=8, pred_len=12), step_s=0.4, regions=...)
+
+A restarted robot resumes with its tracks and discs warm: `stream.save(path)` writes them to
+one file (atomically; `gst_jax.stream_file`), `Stream(run, ...).load(path)` reads them back
+into a stream built as that one was, which then steps as the saved one would have, bit for bit.
 """
 
 from __future__ import annotations
@@ -38,21 +46,23 @@ from __future__ import annotations
 import functools
 import math
 import numbers
+from pathlib import Path
 from typing import Callable, NamedTuple
 
 import jax
 import numpy as np
 
-from gst_jax import conformal
+from gst_jax import conformal, stream_file
 from gst_jax.adaptation import Adaptation
 from gst_jax.compiles import use_persistent_cache
+from gst_jax.config import TimeGrid, check as check_config, rules
 from gst_jax.conformal import Regions
 from gst_jax.data import bucket_size
 from gst_jax.data.batching import LARGEST_COORDINATE
 from gst_jax.errors import DataError
 from gst_jax.model import Params
 from gst_jax.predict import compile_checked
-from gst_jax.predictors import Predictor
+from gst_jax.predictors import ConstantVelocity, Predictor, Standing
 from gst_jax.stream_core import (
     FREE,
     Frame,
@@ -87,11 +97,12 @@ TIME_TOLERANCE = 0.25
 
 @functools.lru_cache(maxsize=16)
 def _jitted_step(model: Predictor, regions: Regions | None, max_speed: float | None,
-                 adaptation: Adaptation | None = None) -> Callable:
-    """`make_step` jitted once per (model, regions, max_speed, adaptation), with the key of
-    the step folded in: streams of one model, one after another (a recorded scene's files),
-    share its compiled programs."""
-    step = make_step(model, regions, max_speed=max_speed, adaptation=adaptation)
+                 adaptation: Adaptation | None = None, step_s: float | None = None
+                 ) -> Callable:
+    """`make_step` jitted once per (model, regions, max_speed, adaptation, step_s), with the
+    key of the step folded in: streams of one model, one after another (a recorded scene's
+    files), share its compiled programs."""
+    step = make_step(model, regions, max_speed=max_speed, step_s=step_s, adaptation=adaptation)
 
     def host_step(params: Params, state: StreamState, frame: Frame, key: jax.Array,
                   index: jax.Array):
@@ -121,6 +132,10 @@ class Stream:
     model step (`config.step_s` apart, or give each frame's `time`), the people detected then;
     ids are the tracker's, any non-negative integers.
 
+    run: a loaded model (`gst_jax.runs.load_model`), or a predictor that needs no model file,
+    `ConstantVelocity(obs_len, pred_len)` or `Standing(...)` (`gst_jax.predictors`), with
+    `step_s`, the seconds between its steps (a model has its own); num_samples, mean and
+    convention are a model's (`gst_jax.predictors.GST`).
     regions: conformal discs around the predictions (`gst_jax.conformal.Regions`), or None.
     adaptation: an online correction of the predictions from their delayed scores
     (`gst_jax.adaptation`, e.g. `SpeedScale()`), applied before the discs, or None.
@@ -144,7 +159,7 @@ class Stream:
                  seed: int = 0, convention: str = "gst", regions: Regions | None = None,
                  robot: bool = False, max_speed: float | None = MAX_SPEED,
                  non_finite: str = "raise", compilation_cache: str | None = None,
-                 adaptation: Adaptation | None = None):
+                 adaptation: Adaptation | None = None, step_s: float | None = None):
         if non_finite not in NON_FINITE:
             raise DataError(f"Stream: non_finite must be one of {NON_FINITE}, got "
                             f"{non_finite!r}")
@@ -154,8 +169,19 @@ class Stream:
                             f"got {max_speed!r}")
         if compilation_cache is not None:
             use_persistent_cache(compilation_cache)
-        self.model = StreamModel(run.model_config, num_samples, mean, convention)
-        self.params = run.params
+        self.model: Predictor
+        if isinstance(run, (ConstantVelocity, Standing)):
+            if (num_samples, mean, convention) != (1, True, "gst"):
+                raise DataError(f"Stream: num_samples, mean and convention are a model's; "
+                                f"{type(run).__name__} predicts one future per track")
+            self.model, self.params, self.mean = run, None, True
+            self.grid = _predictor_grid(run, step_s)
+        else:
+            if step_s is not None:
+                raise DataError("Stream: a model steps at its own step_s (its config's); "
+                                "give step_s only with a predictor without a model")
+            self.model = StreamModel(run.model_config, num_samples, mean, convention)
+            self.params, self.mean, self.grid = run.params, mean, run.model_config.grid
         self.regions, self.robot, self.adaptation = regions, robot, adaptation
         self.max_speed = None if max_speed is None else float(max_speed)
         self.non_finite = non_finite
@@ -164,13 +190,14 @@ class Stream:
         self.restarts = 0            # tracks restarted so far (`StreamOutput.restarted`)
         self._lost: set[int] = set()
         self._last_time: float | None = None
-        config = run.model_config
+        config = self.grid
         self.state = _initial_state(bucket_size(capacity), config.obs_len, regions,
                                     config.pred_len, adaptation)
         # Per track, the regions of one fresh slot, to give the slots a growing stream adds.
         self._fresh_regions = None if regions is None or regions.pooled else _host_tree(
             regions.init(1, config.pred_len))
-        self._step = _jitted_step(self.model, regions, self.max_speed, adaptation)
+        self._step = _jitted_step(self.model, regions, self.max_speed, adaptation,
+                                  config.step_s)
         self._checked: set[int] = set()      # capacities whose step `compile_checked` saw
 
     def step(self, ids, positions, robot_xy=None, *, time: float | None = None
@@ -193,7 +220,7 @@ class Stream:
             positions = np.vstack([positions, robot_xy.reshape(1, 2)])
         steps = self._steps_since(time)
         # Beyond obs_len + pred_len empty steps nothing is left to predict or to score.
-        config = self.model.config
+        config = self.grid
         for _ in range(min(steps - 1, config.obs_len + config.pred_len)):
             self._advance(np.zeros(0, np.int32), np.zeros((0, 2)))
         self.frames += steps - 1 - min(steps - 1, config.obs_len + config.pred_len)
@@ -204,7 +231,7 @@ class Stream:
         self.restarts += len(restarted)
         keep = (predicted > 0) & (track_ids != FREE) & (track_ids != self.ROBOT)
         futures = np.moveaxis(futures[:, :, keep], 2, 0)                        # (L, K, P, 2)
-        return StreamOutput(track_ids[keep], futures[:, 0] if self.model.mean else futures,
+        return StreamOutput(track_ids[keep], futures[:, 0] if self.mean else futures,
                             None if radii is None else radii[keep], delayed, restarted)
 
     def forget(self, ids) -> None:
@@ -241,7 +268,7 @@ class Stream:
 
     def _steps_since(self, time) -> int:
         """Model steps from the last frame to a frame at `time` (1 without a time)."""
-        step_s = self.model.config.step_s
+        step_s = self.grid.step_s
         if time is None:
             if self._last_time is not None:
                 self._last_time += step_s
@@ -287,7 +314,8 @@ class Stream:
                       np.pad(positions, [(0, width - len(ids)), (0, 0)]).astype(np.float32),
                       np.pad(lost, (0, width - len(lost)), constant_values=FREE))
         args = (self.params, self.state, frame, self.key, np.int32(self.frames))
-        if width not in self._checked and self.model.convention == "gst":
+        if width not in self._checked and isinstance(self.model, StreamModel) and (
+                self.model.convention == "gst"):
             # Before a capacity's first step: refuse where memory cannot hold its compiling
             # or its call, say so where the crowd is large for the exact model (issue 78).
             compile_checked(self._step, args, self.model.config, width,
@@ -325,10 +353,73 @@ class Stream:
                 regions, self._fresh_regions)
         return grown.replace(feed=feed, regions=regions)
 
+    # --- Saved and restored: a restarted robot's warm tracks and discs ---------------------
+
+    # What a saved stream keeps of the host beside its state: each attribute and how the file
+    # holds it (`gst_jax.stream_file`). An attribute the host adds that outlives a step is one
+    # more line here.
+    _KEPT = {"frames": stream_file.COUNT, "restarts": stream_file.COUNT,
+             "_lost": stream_file.TRACK_IDS, "_last_time": stream_file.SECONDS,
+             "key": stream_file.KEY}
+
+    def save(self, path: str | Path) -> Path:
+        """Write the tracks (their histories, score buffer, conformal and adaptation states)
+        and the host's fields (`_KEPT`: frames, clock, key, ...) to one safetensors file,
+        atomically (written beside it, then renamed: a crash leaves the last save whole);
+        returns its path. `load` resumes from it."""
+        host = {name: kept.write(getattr(self, name)) for name, kept in self._KEPT.items()}
+        return stream_file.write(path, _host_tree(self.state), self._identity(), host)
+
+    def load(self, path: str | Path) -> Stream:
+        """This stream, holding what `save` wrote to `path`: from now on it steps as the saved
+        stream would have, bit for bit (its key and frame count are the saved ones; `seed`
+        no longer counts; its capacity is the saved one's). Built as the saved stream was (the
+        same model and parameters, step, regions, adaptation and robot), or the file is
+        refused in one line naming what differs (`DataError`), as a damaged file is
+        (`gst_jax.stream_file`). max_speed, non_finite and compilation_cache are this one's.
+
+            stream = Stream(run, regions=Regions("dtaci", 0.1)).load("stream.safetensors")
+        """
+        state, host = stream_file.read(path, self._identity(), self._empty_state, self._KEPT)
+        self.state = state
+        for name, value in host.items():
+            setattr(self, name, value)
+        return self
+
+    def _identity(self) -> dict:
+        """What this stream's tracks are of: a file of another's is refused on loading."""
+        return {"predictor": repr(self.model),
+                "params_sha256": stream_file.params_digest(self.params),
+                "step_s": self.grid.step_s, "regions": repr(self.regions),
+                "adaptation": repr(self.adaptation), "robot": self.robot}
+
+    def _empty_state(self, capacity: int) -> StreamState:
+        """The shapes and dtypes of this stream's state at `capacity` slots (nothing
+        computed)."""
+        return jax.eval_shape(lambda: init_state(capacity, self.grid.obs_len, self.regions,
+                                                 self.grid.pred_len, self.adaptation))
+
 
 # `init_state` as one program (a few hundredths of a second from a warm compilation cache)
 # rather than two dozen eager operations, each traced and compiled or loaded on its own.
 _initial_state = jax.jit(init_state, static_argnums=(0, 1, 2, 3, 4))
+
+
+def _predictor_grid(predictor: ConstantVelocity | Standing, step_s) -> TimeGrid:
+    """The time grid of a predictor without a model, checked by TimeGrid's rules."""
+    if step_s is None:
+        raise DataError(f"Stream: {type(predictor).__name__} needs step_s, the seconds between "
+                        "its steps (e.g. Stream(ConstantVelocity(obs_len=8, pred_len=12), "
+                        "step_s=0.4))")
+    grid = TimeGrid(step_s, predictor.obs_len, predictor.pred_len)
+    try:
+        check_config(grid, tuple(rules(grid)))
+    except ValueError as error:
+        raise DataError(f"Stream: {error}") from None
+    if grid.obs_len < 2:
+        raise DataError(f"Stream: {type(predictor).__name__} needs obs_len of 2 or more (a "
+                        f"displacement), got {grid.obs_len}")
+    return grid
 
 
 def _host_tree(tree):

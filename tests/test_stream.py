@@ -24,6 +24,7 @@ from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
 from gst_jax.errors import DataError
 from gst_jax.predict import make_predict
+from gst_jax.predictors import ConstantVelocity
 from gst_jax.runs import load_model
 from gst_jax.testing.drawn import line_data, saved_figures
 
@@ -584,3 +585,88 @@ def test_a_streams_length_alone_spreads_its_coverage():
     long = coverage.exchangeable_coverage(recording(1200), permutations=400)
     assert abs(long.mean() - 0.9) < 0.01 and abs(short.mean() - 0.9) < 0.03
     assert np.mean(np.abs(long - 0.9) <= 0.02) > 0.9 > 0.6 > np.mean(np.abs(short - 0.9) <= 0.02)
+
+
+# --- Constant velocity with the same discs, and a GST stream saved and restored ----------------
+
+
+def noisy_walkers(count: int, steps: int, step_s: float, noise_m: float, seed: int
+                  ) -> np.ndarray:
+    """(steps, count, 2) straight walks at up to 1.7 m/s, each position observed with
+    Gaussian noise of noise_m metres per axis."""
+    rng = np.random.default_rng(seed)
+    start, velocity = rng.uniform(-6, 6, (count, 2)), rng.uniform(-1.2, 1.2, (count, 2))
+    return (start + velocity * step_s * np.arange(steps)[:, None, None]
+            + rng.normal(0, noise_m, (steps, count, 2)))
+
+
+def test_a_constant_velocity_stream_repeats_each_tracks_last_step_and_covers_at_the_target():
+    """Stream(ConstantVelocity(...), step_s=...) needs no model file: each track detected at
+    the last two steps is predicted at its position plus k times its last displacement, and
+    DtACI's discs around those predictions, checked here against the positions observed k
+    steps later, hold them at about 1 - alpha at every horizon past their first 100 frames
+    (here 0.896, every horizon within 0.889-0.902, over frames 100-299). Their ids
+    are their own: no jump rule (max_speed=None), which noise of 0.1 m now and then trips."""
+    step_s, horizon, frames, alpha = 0.4, 12, 300, 0.1
+    xy = noisy_walkers(12, frames, step_s, 0.1, seed=1)
+    player = stream.Stream(ConstantVelocity(obs_len=8, pred_len=horizon), step_s=step_s,
+                           regions=conformal.Regions("dtaci", alpha), max_speed=None)
+    steps = np.arange(1, horizon + 1)[None, :, None]
+    inside, counted = np.zeros(horizon), np.zeros(horizon)
+    for t in range(frames):
+        out = player.step(np.arange(12), xy[t])
+        np.testing.assert_array_equal(out.ids, np.arange(12 if t else 0))
+        if t == 0:
+            continue
+        seen = xy[t - 1:t + 1].astype(np.float32)            # as the stream holds them
+        expected = seen[1][:, None] + steps * (seen[1] - seen[0])[:, None]      # (12, P, 2)
+        np.testing.assert_allclose(out.futures, expected, rtol=1e-6, atol=1e-5)
+        assert out.radii.shape == (12, horizon) and np.isfinite(out.radii).all()
+        if t >= 100:
+            for k in range(min(horizon, frames - 1 - t)):
+                error = np.linalg.norm(xy[t + k + 1] - out.futures[:, k], axis=-1)
+                inside[k] += (error <= out.radii[:, k]).sum()
+                counted[k] += 12
+    assert counted.min() > 2000
+    assert np.all(np.abs(inside / counted - (1 - alpha)) < 0.03), inside / counted
+    assert abs(inside.sum() / counted.sum() - (1 - alpha)) < 0.015
+
+
+def test_a_stream_without_a_model_is_refused_in_one_line_without_its_step(sim_run):
+    cv = ConstantVelocity(obs_len=8, pred_len=12)
+    for make, problem in [
+            (lambda: stream.Stream(cv), "ConstantVelocity needs step_s"),
+            (lambda: stream.Stream(cv, step_s=-0.4), "step_s must be a positive number"),
+            (lambda: stream.Stream(cv, step_s=0.4, num_samples=20), "are a model's"),
+            (lambda: stream.Stream(ConstantVelocity(obs_len=1), step_s=0.4),
+             "needs obs_len of 2 or more"),
+            (lambda: stream.Stream(sim_run, step_s=0.4), "a model steps at its own step_s")]:
+        with pytest.raises(DataError, match=problem):
+            make()
+
+
+def test_a_gst_stream_restored_from_its_file_steps_as_one_that_never_stopped(sim_run, tmp_path):
+    """The model's stream saved after 12 of 24 frames and restored into a new stream of the
+    same model predicts and issues the same discs, bit for bit; a stream of other parameters
+    (the same architecture) or of constant velocity refuses the file in one line."""
+    xy = noisy_walkers(6, 24, sim_run.model_config.step_s, 0.05, seed=2)
+    regions = conformal.Regions("dtaci", 0.1)
+    player = stream.Stream(sim_run, regions=regions)
+    outputs = [player.step(np.arange(6), xy[t]) for t in range(24)]
+    replayed = stream.Stream(sim_run, regions=regions)
+    for t in range(12):
+        replayed.step(np.arange(6), xy[t])
+    path = replayed.save(tmp_path / "robot.safetensors")
+    restored = stream.Stream(sim_run, regions=regions, seed=9).load(path)
+    for t in range(12, 24):
+        out = restored.step(np.arange(6), xy[t])
+        for name in ("ids", "futures", "radii"):
+            np.testing.assert_array_equal(getattr(out, name), getattr(outputs[t], name))
+    assert len(out.ids) == 6
+    other = type("Run", (), {"model_config": sim_run.model_config,
+                             "params": jax.tree.map(lambda p: p * 1.01, sim_run.params)})()
+    with pytest.raises(DataError, match="saved by a stream of params_sha256 [0-9a-f]{64};"):
+        stream.Stream(other, regions=regions).load(path)
+    with pytest.raises(DataError, match="saved by a stream of predictor GST\\(config=Model"):
+        stream.Stream(ConstantVelocity(obs_len=5, pred_len=5), step_s=0.25,
+                      regions=regions).load(path)
