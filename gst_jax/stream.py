@@ -358,9 +358,13 @@ class Stream:
     # What a saved stream keeps of the host beside its state: each attribute and how the file
     # holds it (`gst_jax.stream_file`). An attribute the host adds that outlives a step is one
     # more line here.
-    _KEPT = {"frames": stream_file.COUNT, "restarts": stream_file.COUNT,
-             "_lost": stream_file.TRACK_IDS, "_last_time": stream_file.SECONDS,
-             "key": stream_file.KEY}
+    _KEPT = {
+        "frames": stream_file.COUNT,
+        "restarts": stream_file.COUNT,
+        "_lost": stream_file.TRACK_IDS,
+        "_last_time": stream_file.SECONDS,
+        "key": stream_file.KEY,
+    }
 
     def save(self, path: str | Path) -> Path:
         """Write the tracks (their histories, score buffer, conformal and adaptation states)
