@@ -348,6 +348,10 @@ def add_train_flags(parser: argparse.ArgumentParser, *, sweep: bool = False) -> 
         add_field_flag(group, "--seed", TrainConfig, "seed", default=d.seed)
         add_field_flag(group, "--fully-detected-only", TrainConfig, "fully_detected_only",
                        default=False, action="store_true")
+        add_field_flag(group, "--score-partial", TrainConfig, "score_partial", default=False,
+                       action="store_true")
+        add_field_flag(group, "--hide-history", TrainConfig, "hide_history", default=0.0,
+                       metavar="P")
         add_field_flag(group, "--init", TrainConfig, "init", default=None, metavar="MODEL")
         add_field_flag(group, "--eval-every", TrainConfig, "eval_every", default=d.eval_every)
     group.add_argument("--no-rotate", action="store_true",
@@ -531,7 +535,8 @@ def train_config(args: argparse.Namespace) -> TrainConfig:
                   max_train_windows=args.max_train_windows)
     if isinstance(args.fully_detected_only, bool):        # a single run, not a sweep
         fields.update(fully_detected_only=args.fully_detected_only, eval_every=args.eval_every,
-                      init=model_spec(args.init))
+                      init=model_spec(args.init), score_partial=args.score_partial,
+                      hide_history=args.hide_history)
     return dataclasses.replace(_TRAIN_DEFAULTS, **fields)
 
 

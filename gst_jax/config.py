@@ -473,6 +473,13 @@ class TrainConfig(_FromDict):
       tau_start / tau_end: Gumbel temperature annealed linearly over the epochs, 0.5 -> 0.03.
       rotate: random rotation of every training scene.
       fully_detected_only: train on fully detected pedestrians only (the paper's "F").
+      score_partial: GST (P)'s loss scores the partially detected pedestrians too, each at the
+        steps its future exists. The release scores only the fully detected, so its models
+        never learn to predict a person seen for part of the observation (a robot's sensor
+        range makes many); a GST (D) loss scores them already.
+      hide_history: the chance that each training pedestrian's history is cut to start at a
+        random observed step (1 .. obs_len - 2), so that partially detected people are common
+        in training where the data has few (`augment.hide_history`).
       seed: seeds parameters, data order, rotations, Gumbel noise and dropout.
       checkpoint_every: epochs between checkpoints (the last epoch is always saved).
       eval_every: epochs between validation AOE/FOE (0 = never; needs a validation split).
@@ -503,6 +510,12 @@ class TrainConfig(_FromDict):
     rotate: bool = setting(True, "random rotation of every training scene")
     fully_detected_only: bool = setting(
         False, "drop partially detected pedestrians (the paper's 'F' baseline)")
+    score_partial: bool = setting(
+        False, "GST (P)'s loss scores every predicted pedestrian at the steps its future "
+        "exists, not only the fully detected (the release's)")
+    hide_history: float = setting(
+        0.0, "the chance that a training pedestrian is seen only from a random observed step "
+        "on (a person who just came into view)", low=0.0, high=1.0)
     seed: int = setting(1000, "random seed", low=-2**63, high=2**63 - 1, always=True)
     checkpoint_every: int = setting(5, "epochs between checkpoints", low=1, high=MAX_COUNT,
                                     always=True)

@@ -199,6 +199,8 @@ TRAIN_FLAGS = {
     "--batch-size": (TrainConfig, "batch_size"),
     "--learning-rate": (TrainConfig, "learning_rate"), "--seed": (TrainConfig, "seed"),
     "--fully-detected-only": (TrainConfig, "fully_detected_only"),
+    "--score-partial": (TrainConfig, "score_partial"),
+    "--hide-history": (TrainConfig, "hide_history"),
     "--init": (TrainConfig, "init"), "--eval-every": (TrainConfig, "eval_every"),
     "--checkpoint-every": (TrainConfig, "checkpoint_every"),
     "--max-train-windows": (TrainConfig, "max_train_windows")}

@@ -320,3 +320,57 @@ def test_draws_of_a_window_do_not_depend_on_its_padding():
     np.testing.assert_array_equal(masks[0][:, :, :5], masks[1][:, :5, :5])
     np.testing.assert_array_equal(masks[0][:, :, -1], masks[1][:, :5, -1])
     assert 0.4 < (masks[0] > 0).mean() < 0.6
+
+
+def test_gst_p_loss_scores_the_partially_detected_only_with_score_partial():
+    """Unit Gaussians (mu 0, sigma 1, rho 0): a step's NLL is |d|^2 / 2. Pedestrian 0 is fully
+    detected (NLL 0.5 and 2.0: mean 1.25); pedestrian 1 is predicted but not fully detected,
+    its future known at step 1 only (NLL 2.0; step 2's displacement is not its own);
+    pedestrian 2 is not predicted. The release scores pedestrian 0 alone: 1.25; with
+    score_partial both: (1.25 + 2.0) / 2."""
+    from gst_jax.model.heads import Losses, head
+
+    true = jnp.array([[[[1.0, 0.0], [2.0, 0.0], [9.0, 9.0]],
+                       [[0.0, 2.0], [3.0, 3.0], [9.0, 9.0]]]])                 # (1, P=2, N=3, 2)
+    zeros = jnp.zeros_like(true)
+    common = dict(displacements=zeros, mu=zeros, sigma=jnp.ones_like(true),
+                  corr=jnp.zeros(true.shape[:-1]), true_displacements=true,
+                  step_mask=jnp.array([[[1.0, 1.0, 0.0], [1.0, 0.0, 0.0]]]),
+                  fully_detected=jnp.array([[1.0, 0.0, 0.0]]))
+    loss = head("gaussian").scene_loss
+    np.testing.assert_allclose(loss(Losses(**common)), [1.25], rtol=1e-6)
+    np.testing.assert_allclose(loss(Losses(**common, score_partial=jnp.bool_(False))), [1.25],
+                               rtol=1e-6)
+    np.testing.assert_allclose(loss(Losses(**common, score_partial=jnp.bool_(True))), [1.625],
+                               rtol=1e-6)
+
+
+def test_hidden_histories_start_late_keep_the_last_two_steps_and_only_with_a_chance():
+    """augment.hide_history: with chance 1 every pedestrian is seen from a step k in 1..3 of
+    5 observed on (positions zeroed before it, node mask as docs/MODEL.md 1.6 says of the new
+    position mask), the last two observed steps and the future untouched; chance 0 changes
+    nothing."""
+    from gst_jax import augment
+
+    batch_size, steps, people, obs_len = 4, 10, 6, 5
+    positions = jnp.asarray(np.random.default_rng(0).normal(size=(batch_size, steps, people, 2)),
+                            jnp.float32)
+    mask = jnp.ones((batch_size, steps, people))
+    batch = SceneBatch(positions=positions, position_mask=mask,
+                       node_mask=node_mask_from_positions(mask), scene_mask=jnp.ones(batch_size),
+                       window_index=jnp.arange(batch_size, dtype=jnp.int32))
+    same = augment.hide_history(jax.random.key(0), batch, 0.0, obs_len)
+    for a, b in zip(same, batch):
+        np.testing.assert_array_equal(a, b)
+    hidden = augment.hide_history(jax.random.key(0), batch, 1.0, obs_len)
+    starts = np.argmax(np.asarray(hidden.position_mask) > 0, axis=1)             # (B, N)
+    assert set(starts.ravel().tolist()) == {1, 2, 3}
+    for b in range(batch_size):
+        for n in range(people):
+            k = starts[b, n]
+            np.testing.assert_array_equal(hidden.position_mask[b, :, n],
+                                          [0] * k + [1] * (steps - k))
+            np.testing.assert_array_equal(hidden.positions[b, :k, n], 0)
+            np.testing.assert_array_equal(hidden.positions[b, k:, n], positions[b, k:, n])
+            np.testing.assert_array_equal(hidden.node_mask[b, :, n],
+                                          [0] * (k + 1) + [1] * (steps - k - 1))

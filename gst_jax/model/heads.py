@@ -27,7 +27,9 @@ class Losses:
 
     displacements: (B, P, N, 2) the drawn displacements; mu, sigma (B, P, N, 2), corr
     (B, P, N): the readout; true_displacements (B, P, N, 2); step_mask (B, P, N) 1 where a
-    predicted pedestrian's true displacement exists; fully_detected (B, N).
+    predicted pedestrian's true displacement exists; fully_detected (B, N); score_partial:
+    () bool, may be traced: GST (P)'s loss scores every predicted pedestrian at its steps of
+    step_mask, not only the fully detected (`TrainConfig.score_partial`).
     """
 
     displacements: jax.Array
@@ -37,6 +39,7 @@ class Losses:
     true_displacements: jax.Array
     step_mask: jax.Array
     fully_detected: jax.Array
+    score_partial: jax.Array | bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,12 +107,21 @@ def _position_mse_loss(losses: Losses) -> jax.Array:
 
 def _gaussian_nll_loss(losses: Losses) -> jax.Array:
     """The release's: mean NLL over the predicted steps, then over fully detected
-    pedestrians only."""
+    pedestrians only; with `score_partial`, each predicted pedestrian's mean NLL over the
+    steps its future exists, then over those pedestrians."""
     nll = gaussian_nll(losses.true_displacements, losses.mu, losses.sigma, losses.corr)
     fully_detected = losses.fully_detected
     per_pedestrian = jnp.mean(jnp.where(fully_detected[:, None, :] > 0, nll, 0.0), axis=1)
-    return safe_ratio(jnp.sum(per_pedestrian * fully_detected, axis=-1),
-                      jnp.sum(fully_detected, axis=-1))
+    release = safe_ratio(jnp.sum(per_pedestrian * fully_detected, axis=-1),
+                         jnp.sum(fully_detected, axis=-1))
+    if losses.score_partial is False:
+        return release
+    steps = jnp.sum(losses.step_mask, axis=1)                                    # (B, N)
+    per_pedestrian = safe_ratio(jnp.sum(jnp.where(losses.step_mask > 0, nll, 0.0), axis=1),
+                                steps)
+    scored = (steps > 0).astype(nll.dtype)
+    partial = safe_ratio(jnp.sum(per_pedestrian * scored, axis=-1), jnp.sum(scored, axis=-1))
+    return jnp.where(losses.score_partial, partial, release)
 
 
 HEADS: dict[str, Head] = {

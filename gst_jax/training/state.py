@@ -39,11 +39,17 @@ class HParams:
       learning_rate: () Adam's learning rate of the epoch.
       fully_detected_only: () bool, the paper's "F" baseline: partially detected pedestrians
         are removed from every training scene.
+      score_partial: () bool, GST (P)'s loss scores the partially detected too
+        (`TrainConfig.score_partial`).
+      hide_history: () float32, the chance that a pedestrian's history is cut short
+        (`TrainConfig.hide_history`).
     """
 
     controls: Controls
     learning_rate: jax.Array
     fully_detected_only: jax.Array
+    score_partial: jax.Array
+    hide_history: jax.Array
 
 
 def make_optimizer() -> optax.GradientTransformation:
@@ -71,7 +77,9 @@ def hparams_for_epoch(model_config: ModelConfig, train_config: TrainConfig, epoc
     learning_rate, tau = make_schedule(train_config).at(epoch)
     return HParams(controls=Controls.from_config(model_config, tau),
                    learning_rate=jnp.float32(learning_rate),
-                   fully_detected_only=jnp.bool_(fully_detected_only))
+                   fully_detected_only=jnp.bool_(fully_detected_only),
+                   score_partial=jnp.bool_(train_config.score_partial),
+                   hide_history=jnp.float32(train_config.hide_history))
 
 
 def parameter_key(seed: int) -> jax.Array:

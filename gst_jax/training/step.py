@@ -26,6 +26,9 @@ from gst_jax.parallel import Devices
 from gst_jax.rollout import rollout
 from gst_jax.training.state import HParams, TrainState, make_optimizer
 
+# The stream of draws of `augment.hide_history`, folded into a step's key.
+HIDE_STREAM = 0x41DE
+
 
 def training_loss(params: Params, key: jax.Array, batch: SceneBatch, config: ModelConfig,
                   hparams: HParams, *, rotate: bool, num_scenes: jax.Array | None = None
@@ -35,12 +38,16 @@ def training_loss(params: Params, key: jax.Array, batch: SceneBatch, config: Mod
     rotate_key, rollout_key = jax.random.split(key)
     if rotate:
         batch = augment.rotate(rotate_key, batch)
+    # A key of its own, so that the rotations and the rollout draw as without the option.
+    hide_key = jax.random.fold_in(key, HIDE_STREAM)
+    batch = augment.hide_history(hide_key, batch, hparams.hide_history, config.obs_len)
     batch = drop_partially_detected(batch, hparams.fully_detected_only)
     output = rollout(params, rollout_key, batch, config, hparams.controls, hard=False,
                      deterministic=False)
     if num_scenes is None:
         num_scenes = jnp.sum(batch.scene_mask)
-    return jnp.sum(losses.scene_losses(config, output, batch) * batch.scene_mask) / num_scenes
+    scene_losses = losses.scene_losses(config, output, batch, hparams.score_partial)
+    return jnp.sum(scene_losses * batch.scene_mask) / num_scenes
 
 
 class TrainStep:
