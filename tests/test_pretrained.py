@@ -78,6 +78,30 @@ def test_the_list_says_why_a_model_has_no_test_figures_instead_of_nan(capsys):
     assert "crowdnav_sj: epoch 100, AOE - FOE - " in listed
 
 
+def test_every_model_states_its_time_step_and_the_speed_range_measured_for_it(capsys):
+    """SPEED_RANGES holds what experiments/speed_range.py published for every shipped model,
+    at the model's own grid; `list` and the card (SOURCES.md) say it."""
+    published = json.loads((Path(pretrained.__file__).parents[2] / "results"
+                             / "speed_range.json").read_text())["models"]
+    assert sorted(pretrained.SPEED_RANGES) == pretrained.available()
+    pretrained_main(["list"])
+    listed = capsys.readouterr().out
+    card = (pretrained.ROOT / "SOURCES.md").read_text()
+    for name, speeds in pretrained.SPEED_RANGES.items():
+        measured, grid = published[name], ModelConfig.from_dict(
+            pretrained.load_meta(name)["model"]).grid
+        assert (measured["step_s"], measured["obs_len"], measured["pred_len"]) == (
+            grid.step_s, grid.obs_len, grid.pred_len)
+        low, high = measured["range"]["low"], measured["range"]["high"]
+        assert speeds == (None if low is None else (low, high)), name
+        text = "none" if low is None else f"{low:g}" if low == high else f"{low:g}-{high:g}"
+        assert (f"| `{name}` | {grid.step_s:g} s | {grid.obs_len} + {grid.pred_len} | {text} |"
+                in card), name
+        assert (f"time step {grid.step_s:g} s, {grid.obs_len} observed + {grid.pred_len} "
+                f"predicted steps; walking speeds predicted sensibly: "
+                f"{'none from 0.25 to 6' if low is None else text} m/s" in listed), name
+
+
 def test_the_wheel_carries_every_file_of_the_shipped_models():
     tomllib = pytest.importorskip("tomllib")      # Python 3.11+
     root = Path(pretrained.__file__).parents[1]

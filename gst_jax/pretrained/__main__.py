@@ -34,7 +34,8 @@ def main(argv: list[str] | None = None) -> None:
     export.add_argument("--licence", help="their licence and attribution, one line")
     export.add_argument("--licence-file", action="append", default=[], metavar="FILE",
                         help="copied beside the weights (a LICENSE as LICENSE.<its folder>)")
-    listing = commands.add_parser("list", help="shipped models and their measured test AOE/FOE")
+    listing = commands.add_parser("list", help="shipped models: their measured test AOE/FOE, "
+                                  "time step and speed range")
     listing.add_argument("--json", action="store_true", help="print every model's meta.json")
     argv = sys.argv[1:] if argv is None else argv
     command_line = shlex.join(["python", "-m", "gst_jax.pretrained", *argv])
