@@ -11,18 +11,24 @@ and its slot reused. Capacity grows by the buckets of `gst_jax.data.bucket_size`
 that changes size meets few compiled programs; `Stream.warm_up` compiles them all before the
 robot moves, and `compilation_cache=DIR` keeps them on disk for the next process.
 
-A tracker's id names one person until the tracker says otherwise: `Stream.forget(ids)` ends
-those tracks (an id the tracker recycles then starts a new one), and an id that reappears
-farther from its last position than `max_speed` allows over the elapsed steps starts a new
-track too (`StreamOutput.restarted`), so that two people are never glued into one history and
-the old person's pending predictions are never scored against the newcomer.
+A tracker's id names one person until the tracker says otherwise: `Stream.forget(ids)` or
+`step(..., lost=ids)` ends those tracks (an id the tracker recycles then starts a new one),
+and an id that reappears where its track could not have gone (`Gate`: beyond `max_speed`, or
+farther from where its recent velocity would have carried it than `max_acceleration` allows)
+starts a new track too (`StreamOutput.restarted`), so that two people are never glued into
+one history and the old person's pending predictions are never scored against the newcomer.
+
+A tracker at another rate than the model's (5 Hz, 10 Hz, jittered, frames dropped) gives each
+frame's `time`: the stream resamples its tracks to the model's steps (`gst_jax.stream_time`:
+each track interpolated to each tick of a fixed grid from its detections on both sides, at
+most one tick late), and a gap in the frames runs the model once, not once per missing step.
 
 Underneath, everything is a pure function of arrays, so that it jits, vmaps over robots
 (environments, as CrowdNav++ trains) and runs inside a planner's program: the core,
 `gst_jax.stream_core`, whose every name this module re-exports (import them from here):
 
     state = init_state(capacity, obs_len)               # StreamState
-    state = observe(state, frame)                        # Frame: ids (M,), positions (M, 2)
+    state = observe(state, frame, gate)                  # Frame: ids (M,), positions (M, 2)
     futures, predicted = predict_slots(model, params, key, state)
 
 `Stream`, this module, is the host around them: numpy in and out, ids in any order, capacity
@@ -44,10 +50,11 @@ into a stream built as that one was, which then steps as the saved one would hav
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import numbers
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -66,6 +73,7 @@ from gst_jax.predictors import ConstantVelocity, Predictor, Standing
 from gst_jax.stream_core import (
     FREE,
     Frame,
+    Gate,
     StreamModel,
     StreamState,
     adapt,
@@ -76,37 +84,46 @@ from gst_jax.stream_core import (
     predict_slots,
     update_regions,
 )
+from gst_jax.stream_time import Clock
 
 __all__ = [
     # the host: numpy in and out, ids, capacity growth, times, compiling ahead
-    "Stream", "StreamOutput", "MAX_SPEED", "NON_FINITE", "TIME_TOLERANCE",
+    "Stream", "StreamOutput", "MAX_SPEED", "MAX_ACCELERATION", "JUMP_TOLERANCE", "NON_FINITE",
     # re-exported: the pure core (gst_jax.stream_core) and the regions (gst_jax.conformal)
-    "FREE", "Frame", "StreamModel", "StreamState", "adapt", "as_batch", "init_state",
+    "FREE", "Frame", "Gate", "StreamModel", "StreamState", "adapt", "as_batch", "init_state",
     "make_step", "observe", "predict_slots", "update_regions", "Regions",
 ]
 
-# `Stream`'s default max_speed (m/s): a brisk walk. An id seen again farther away than this
-# speed allows over the steps since it was last seen starts a new track.
-MAX_SPEED = 2.5
+logger = logging.getLogger("gst_jax.stream")
+
+# `Stream`'s default gate (`Gate`), when a known id's detection is another person's: nobody
+# moves faster than MAX_SPEED (m/s: a cyclist; a jogger runs 3, a walker 1.4), and a track seen
+# at least twice moves on at its last velocity give or take JUMP_TOLERANCE (m: a tracker's
+# noise, a simulated human turning back at its goal) + MAX_ACCELERATION (m/s^2) x the elapsed
+# time^2 / 2. It restarts none of ETH/UCY's or the simulated crowd's annotated tracks, a step
+# or three later (the rule before, 2.5 m/s alone, restarted 46 % of ETH's steps), and a walker
+# at 1 m/s reappearing 3 m from where it would be is another person up to 0.75 s later (1.13 m
+# allowed after 0.25 s, 2.13 m after 0.75 s): experiments/identity_gate.py, docs/robot.md.
+MAX_SPEED = 8.0
+MAX_ACCELERATION = 4.0
+JUMP_TOLERANCE = 1.0
 # What `Stream(non_finite=...)` does with a detection whose position is NaN or infinite.
 NON_FINITE = ("raise", "undetected")
-# A timestamped frame may lie this far (in model steps) from a whole number of steps after the
-# last frame; farther is refused.
-TIME_TOLERANCE = 0.25
 
 
 @functools.lru_cache(maxsize=16)
-def _jitted_step(model: Predictor, regions: Regions | None, max_speed: float | None,
+def _jitted_step(model: Predictor, regions: Regions | None, gate: Gate | None,
                  adaptation: Adaptation | None = None, step_s: float | None = None
                  ) -> Callable:
-    """`make_step` jitted once per (model, regions, max_speed, adaptation, step_s), with the
+    """`make_step` jitted once per (model, regions, gate, adaptation, step_s), with the
     key of the step folded in: streams of one model, one after another (a recorded scene's
-    files), share its compiled programs."""
-    step = make_step(model, regions, max_speed=max_speed, step_s=step_s, adaptation=adaptation)
+    files), share its compiled programs. Its `idle` empty steps (after a gap in the frames)
+    come before the step, which folds in the index it reaches."""
+    step = make_step(model, regions, gate=gate, step_s=step_s, adaptation=adaptation)
 
     def host_step(params: Params, state: StreamState, frame: Frame, key: jax.Array,
-                  index: jax.Array):
-        return step(params, state, frame, jax.random.fold_in(key, index))
+                  index: jax.Array, idle: jax.Array):
+        return step(params, state, frame, jax.random.fold_in(key, index + idle), idle)
     return jax.jit(host_step)
 
 
@@ -117,20 +134,35 @@ class StreamOutput(NamedTuple):
     delayed: the scores this frame's observations gave the earlier predictions, with the radii
     issued with them (`conformal.DelayedScores`, (C, P) over the slots), for measuring
     coverage; None without regions. restarted: the ids whose track restarted at this frame,
-    being seen farther than `max_speed` allows from where they were last seen (another person
-    under a recycled id, or a tracker's switch)."""
+    seen where their track could not have gone (`Gate`: another person under a recycled id,
+    or a tracker's switch).
+
+    With frame times (`Stream.step(..., time=)`): time, the time (s) of the model's step the
+    predictions start from (`futures[..., k, :]` is at time + (k + 1) step_s); ticks, the
+    model steps this frame reached: 0 where it reached none (the last tick's ids, futures and
+    radii again, nothing scored: `repeated`), more than 1 after a gap (delayed: the last
+    one's scores). Without: time None, ticks 1."""
 
     ids: np.ndarray
     futures: np.ndarray
     radii: np.ndarray | None = None
     delayed: conformal.DelayedScores | None = None
     restarted: np.ndarray = np.zeros(0, np.int32)
+    time: float | None = None
+    ticks: int = 1
+
+    @property
+    def repeated(self) -> bool:
+        """Whether this frame reached no model step: the last step's predictions again."""
+        return self.ticks == 0
 
 
 class Stream:
-    """A stream over a tracker's output (numpy in and out): `step(ids, positions)` once per
-    model step (`config.step_s` apart, or give each frame's `time`), the people detected then;
-    ids are the tracker's, any non-negative integers.
+    """A stream over a tracker's output (numpy in and out): `step(ids, positions)`, the
+    people detected in a frame; ids are the tracker's, any non-negative integers. Without
+    `time`, each frame is one model step (`config.step_s` after the last): a tracker at another
+    rate, or whose frames jitter or drop, must give each frame's `time` (`step`), and its
+    tracks are resampled to the model's steps.
 
     run: a loaded model (`gst_jax.runs.load_model`), or a predictor that needs no model file,
     `ConstantVelocity(obs_len, pred_len)` or `Standing(...)` (`gst_jax.predictors`), with
@@ -141,9 +173,14 @@ class Stream:
     (`gst_jax.adaptation`, e.g. `SpeedScale()`), applied before the discs, or None.
     robot: `step` also takes the robot's position, which joins the graph as one more agent
     (the people's predictions may react to it); it is never predicted.
-    max_speed: metres per second (default MAX_SPEED, a brisk walk). An id seen farther from
-    its last position than this speed allows over the steps since starts a new track (its
-    old history and pending predictions are dropped; `StreamOutput.restarted`); None: never.
+    max_speed, max_acceleration, jump_tolerance: when a known id's detection is another
+    person's (`Gate`; defaults MAX_SPEED 8 m/s, MAX_ACCELERATION 4 m/s^2, JUMP_TOLERANCE 1 m).
+    An id seen farther from its last position than max_speed allows over the time since, or
+    (seen twice or more) farther from where its last velocity would have carried it than
+    jump_tolerance + max_acceleration x time^2 / 2, starts a new track (its old history and
+    pending predictions are dropped; `StreamOutput.restarted`). max_acceleration None: the
+    speed rule alone (before issue 92: max_speed=2.5, max_acceleration=None); max_speed None:
+    never (recorded annotations, whose ids are ground truth).
     non_finite: "raise" (default) refuses a frame with a NaN or infinite position in one line
     (`DataError`); "undetected" reads such a detection as that person not detected at this
     step, the others' detections kept.
@@ -159,14 +196,17 @@ class Stream:
                  seed: int = 0, convention: str = "gst", regions: Regions | None = None,
                  robot: bool = False, max_speed: float | None = MAX_SPEED,
                  non_finite: str = "raise", compilation_cache: str | None = None,
-                 adaptation: Adaptation | None = None, step_s: float | None = None):
+                 adaptation: Adaptation | None = None,
+                 max_acceleration: float | None = MAX_ACCELERATION,
+                 jump_tolerance: float = JUMP_TOLERANCE, step_s: float | None = None):
         if non_finite not in NON_FINITE:
             raise DataError(f"Stream: non_finite must be one of {NON_FINITE}, got "
                             f"{non_finite!r}")
-        if max_speed is not None and not (isinstance(max_speed, numbers.Real)
-                                          and 0 < max_speed < math.inf):
-            raise DataError(f"Stream: max_speed must be a positive number of m/s (or None), "
-                            f"got {max_speed!r}")
+        gate = [_gate_limit("max_speed", max_speed, "a positive number of m/s (or None)"),
+                _gate_limit("max_acceleration", max_acceleration,
+                            "a positive number of m/s^2 (or None)"),
+                _gate_limit("jump_tolerance", jump_tolerance, "a number of metres, 0 or more",
+                            0.0)]
         if compilation_cache is not None:
             use_persistent_cache(compilation_cache)
         self.model: Predictor
@@ -184,29 +224,39 @@ class Stream:
             self.params, self.mean, self.grid = run.params, mean, run.model_config.grid
         self.regions, self.robot, self.adaptation = regions, robot, adaptation
         self.max_speed = None if max_speed is None else float(max_speed)
+        self.gate = None if gate[0] is None else Gate(gate[0], gate[1], gate[2] or 0.0)
         self.non_finite = non_finite
         self.key = jax.random.key(seed)
         self.frames = 0              # model steps so far (the key of step t folds in t)
         self.restarts = 0            # tracks restarted so far (`StreamOutput.restarted`)
         self._lost: set[int] = set()
-        self._last_time: float | None = None
         config = self.grid
+        # Frame times resampled to the model's steps (`step(..., time=)`); with the state and
+        # the counters above, all a stream holds between frames.
+        self._clock = Clock(config.step_s)
         self.state = _initial_state(bucket_size(capacity), config.obs_len, regions,
                                     config.pred_len, adaptation)
         # Per track, the regions of one fresh slot, to give the slots a growing stream adds.
         self._fresh_regions = None if regions is None or regions.pooled else _host_tree(
             regions.init(1, config.pred_len))
-        self._step = _jitted_step(self.model, regions, self.max_speed, adaptation,
+        self._step = _jitted_step(self.model, regions, self.gate, adaptation,
                                   config.step_s)
         self._checked: set[int] = set()      # capacities whose step `compile_checked` saw
 
-    def step(self, ids, positions, robot_xy=None, *, time: float | None = None
-             ) -> StreamOutput:
+    def step(self, ids, positions, robot_xy=None, *, time: float | None = None,
+             lost=None) -> StreamOutput:
         """The predictions after this frame: ids (M,) of the people detected now, positions
-        (M, 2) in metres. time: the frame's time in seconds (any origin); a frame k model steps
-        after the last (to a quarter of a step) counts k - 1 frames in between where nobody was
-        detected, and one farther off the model's steps is refused (`DataError`). Without
-        time, a frame is one model step after the last."""
+        (M, 2) in metres. lost: ids the tracker reports lost at this frame, ended before its
+        detections are matched (`forget`).
+
+        time: the frame's time in seconds (any origin). The model steps on a grid from the first
+        frame's time, `step_s` apart; this frame reaches every step of it since the last frame
+        up to its own time (`StreamOutput.time`, `.ticks`), each track interpolated linearly
+        there from its detections on both sides, at most two model steps apart
+        (`gst_jax.stream_time`): any rate, jitter or dropped frames, none refused; a frame at
+        or before the last one's time is (`DataError`). A track missing from a frame is
+        filled in once seen again within two steps; steps where nobody was seen (a gap) run
+        at once, without the model. Without time, a frame is one model step after the last."""
         ids, positions = _checked_frame(ids, positions, self.non_finite)
         if self.robot:
             if robot_xy is None:
@@ -218,30 +268,107 @@ class Stream:
                                 f"{LARGEST_COORDINATE:.0e} m, got {robot_xy.tolist()}")
             ids = np.append(ids, self.ROBOT).astype(np.int32)
             positions = np.vstack([positions, robot_xy.reshape(1, 2)])
-        steps = self._steps_since(time)
-        # Beyond obs_len + pred_len empty steps nothing is left to predict or to score.
-        config = self.grid
-        for _ in range(min(steps - 1, config.obs_len + config.pred_len)):
-            self._advance(np.zeros(0, np.int32), np.zeros((0, 2)))
-        self.frames += steps - 1 - min(steps - 1, config.obs_len + config.pred_len)
-        state, futures, predicted, radii, delayed = self._advance(ids, positions)
+        clock = self._clock
+        if time is None and clock.last_time is not None:       # a timed stream
+            time = clock.last_time + clock.step_s
+        if time is not None:
+            time = clock.checked_time(time)
+        if lost is not None:
+            self.forget(lost)
+        if time is None:
+            return self._output([self._advance(ids, positions)])
+        first = clock.ticks
+        reached = clock.frame(time, ids, positions, self.gate)
+        filled_ids, filled_ticks, filled_xy = reached.fills
+        self._fill(filled_ids, filled_ticks, filled_xy, first)
+        if len(reached.restarted):     # their old tracks end at the next step, as forgotten
+            self._lost.update(reached.restarted.tolist())
+        steps, idle = [], 0
+        for n, tick in enumerate(reached.ticks):
+            if len(tick.ids) == 0 and n < len(reached.ticks) - 1:
+                idle += 1
+                continue
+            # Beyond obs_len + pred_len empty steps nothing is left to predict or to score.
+            skipped = max(0, idle - self.grid.obs_len - self.grid.pred_len)
+            self.frames += skipped
+            steps.append(self._advance(tick.ids, tick.positions, idle - skipped))
+            idle = 0
+        if not steps:
+            return self._repeated(reached.restarted, time)
+        return self._output(steps, reached.restarted, reached.ticks[-1].time,
+                            len(reached.ticks))
+
+    def _output(self, steps: list[tuple], restarted: np.ndarray | None = None,
+                time: float | None = None, ticks: int = 1) -> StreamOutput:
+        """The output of the last of a frame's model steps (`_advance`'s), with the tracks
+        restarted at any of them or before (`restarted`, the raw detections' restarts)."""
+        restarted = np.zeros(0, np.int32) if restarted is None else restarted
+        for state, *_ in steps:
+            track_ids = np.asarray(state.track_ids)
+            restarted = np.append(restarted, track_ids[np.asarray(state.restarted)])
+        restarted = self._restarted(restarted, time)
+        state, futures, predicted, radii, delayed = steps[-1]
         track_ids = np.asarray(state.track_ids)
-        restarted = np.sort(track_ids[np.asarray(state.restarted)
-                                      & (track_ids != self.ROBOT)])
-        self.restarts += len(restarted)
         keep = (predicted > 0) & (track_ids != FREE) & (track_ids != self.ROBOT)
         futures = np.moveaxis(futures[:, :, keep], 2, 0)                        # (L, K, P, 2)
-        return StreamOutput(track_ids[keep], futures[:, 0] if self.mean else futures,
-                            None if radii is None else radii[keep], delayed, restarted)
+        output = StreamOutput(track_ids[keep], futures[:, 0] if self.mean else futures,
+                              None if radii is None else radii[keep], delayed, restarted,
+                              time, ticks)
+        self._clock.last_output = {"ids": output.ids, "futures": output.futures,
+                                   "radii": output.radii}
+        return output
+
+    def _repeated(self, restarted: np.ndarray, time: float) -> StreamOutput:
+        """A frame that reached no model step: the last step's predictions again (ticks 0),
+        nothing scored."""
+        clock = self._clock
+        last = clock.last_output
+        assert last is not None, "the first frame reaches its step"
+        delayed = None
+        if self.regions is not None:
+            shape = (self.state.capacity, self.grid.pred_len)
+            nothing: list[Any] = [np.zeros(shape, np.float32), np.zeros(shape, bool),
+                                  np.zeros(shape, np.float32)]
+            delayed = conformal.DelayedScores(*nothing)
+        return StreamOutput(last["ids"], last["futures"], last["radii"], delayed,
+                            self._restarted(restarted, time), clock.tick_time(clock.ticks - 1), 0)
+
+    def _restarted(self, ids: np.ndarray, time: float | None) -> np.ndarray:
+        """The tracks restarted at a frame (sorted, the robot left out), counted and logged."""
+        ids = np.unique(ids[ids != self.ROBOT]).astype(np.int32)
+        if len(ids):
+            self.restarts += len(ids)
+            logger.info("tracks %s restarted%s: each seen where its track could not have gone "
+                        "(another person under a recycled id, or a tracker's switch)",
+                        ids.tolist(), "" if time is None else f" at {time:.3f} s")
+        return ids
+
+    def _fill(self, ids: np.ndarray, ticks: np.ndarray, positions: np.ndarray, first: int
+              ) -> None:
+        """Write the detections of tracks missed at earlier steps (ticks (F,) of the clock,
+        `first` the next) into their histories, where the step is still held."""
+        if not len(ids):
+            return
+        track_ids = np.asarray(self.state.track_ids)
+        history = np.array(self.state.positions)
+        detected = np.array(self.state.detected)
+        columns = detected.shape[-1] - first + ticks
+        for track, column, xy in zip(ids, columns, positions):
+            slot = np.flatnonzero(track_ids == track)
+            if len(slot) and column >= 0:
+                history[slot[0], column], detected[slot[0], column] = xy, 1.0
+        self.state = self.state.replace(positions=history, detected=detected)
 
     def forget(self, ids) -> None:
         """End the tracks of these ids (a tracker's lost tracks) at the next step, before that
         frame's detections: an id among them seen again starts a new track, and the old
-        track's pending predictions are never scored."""
+        track's pending predictions are never scored. The way to end a track: give the ids
+        your tracker reports lost here, or with their frame (`step(..., lost=)`)."""
         ids = np.asarray(ids).reshape(-1)
         if len(ids) and not np.issubdtype(ids.dtype, np.integer):
             raise DataError(f"forget: track ids must be integers, got {ids[:5].tolist()}")
         self._lost.update(int(i) for i in ids)
+        self._clock.forget(ids)
 
     def warm_up(self, max_people: int) -> tuple[int, ...]:
         """Compile the step of every capacity this stream can grow to while it holds at most
@@ -266,31 +393,10 @@ class Stream:
             self.state = state
         return tuple(capacities)
 
-    def _steps_since(self, time) -> int:
-        """Model steps from the last frame to a frame at `time` (1 without a time)."""
-        step_s = self.grid.step_s
-        if time is None:
-            if self._last_time is not None:
-                self._last_time += step_s
-            return 1
-        if not (isinstance(time, numbers.Real) and math.isfinite(time)):
-            raise DataError(f"a frame's time must be a finite number of seconds, got {time!r}")
-        if self._last_time is None:
-            self._last_time = float(time)
-            return 1
-        elapsed = float(time) - self._last_time
-        steps = round(elapsed / step_s)
-        if steps < 1 or abs(elapsed / step_s - steps) > TIME_TOLERANCE:
-            raise DataError(
-                f"a frame at time {time:g} s comes {elapsed:g} s after the last "
-                f"({elapsed / step_s:.2f} model steps of {step_s:g} s): frames must be a whole "
-                f"number of steps apart, to within {TIME_TOLERANCE:g} of a step")
-        self._last_time = float(time)
-        return steps
-
-    def _advance(self, ids: np.ndarray, positions: np.ndarray) -> tuple:
-        """One model step over a checked frame: the state moves on; returns it and the
-        step's outputs as numpy arrays."""
+    def _advance(self, ids: np.ndarray, positions: np.ndarray, idle: int = 0) -> tuple:
+        """One model step over a checked frame, after `idle` steps where nobody was detected
+        (run without the model): the state moves on; returns it and the step's outputs as
+        numpy arrays."""
         lost = np.zeros(0, np.int32)
         if self._lost:
             held = set(np.asarray(self.state.track_ids).tolist())
@@ -299,21 +405,22 @@ class Stream:
         if len(ids) > self.state.capacity:
             self.state = self._grown(bucket_size(len(ids)))
         while True:
-            state, *outputs = self._run(ids, positions, lost)
+            state, *outputs = self._run(ids, positions, lost, idle)
             if int(state.dropped) == int(self.state.dropped):
                 break
             self.state = self._grown(bucket_size(self.state.capacity + 1))
-        self.state, self.frames = state, self.frames + 1
+        self.state, self.frames = state, self.frames + 1 + idle
         return (state, *outputs)
 
-    def _run(self, ids: np.ndarray, positions: np.ndarray, lost: np.ndarray) -> tuple:
+    def _run(self, ids: np.ndarray, positions: np.ndarray, lost: np.ndarray, idle: int = 0
+             ) -> tuple:
         """The jitted step on the state as it is, frames padded to the capacity (one compiled
         step per capacity): the state (on the device) and the outputs as numpy."""
         width = self.state.capacity
         frame = Frame(np.pad(ids, (0, width - len(ids)), constant_values=FREE),
                       np.pad(positions, [(0, width - len(ids)), (0, 0)]).astype(np.float32),
                       np.pad(lost, (0, width - len(lost)), constant_values=FREE))
-        args = (self.params, self.state, frame, self.key, np.int32(self.frames))
+        args = (self.params, self.state, frame, self.key, np.int32(self.frames), np.int32(idle))
         if width not in self._checked and isinstance(self.model, StreamModel) and (
                 self.model.convention == "gst"):
             # Before a capacity's first step: refuse where memory cannot hold its compiling
@@ -362,7 +469,7 @@ class Stream:
         "frames": stream_file.COUNT,
         "restarts": stream_file.COUNT,
         "_lost": stream_file.TRACK_IDS,
-        "_last_time": stream_file.SECONDS,
+        "_clock": stream_file.Kept(Clock.as_json, Clock.from_json),
         "key": stream_file.KEY,
     }
 
@@ -424,6 +531,17 @@ def _predictor_grid(predictor: ConstantVelocity | Standing, step_s) -> TimeGrid:
         raise DataError(f"Stream: {type(predictor).__name__} needs obs_len of 2 or more (a "
                         f"displacement), got {grid.obs_len}")
     return grid
+
+
+def _gate_limit(name: str, value, must_be: str, least: float | None = None) -> float | None:
+    """One of the gate's numbers (`Stream`'s max_speed, ...) as a float (None stays None where
+    `least` is None), or a one-line refusal: finite and above 0, or at least `least`."""
+    if value is None and least is None:
+        return None
+    number = float(value) if isinstance(value, numbers.Real) else math.nan
+    if not (math.isfinite(number) and (number > 0 if least is None else number >= least)):
+        raise DataError(f"Stream: {name} must be {must_be}, got {value!r}")
+    return number
 
 
 def _host_tree(tree):

@@ -104,7 +104,7 @@ def test_the_file_is_safetensors_with_its_json_in_the_metadata(saved):
         assert file.get_tensor("regions/thresholds").dtype == np.float32
     assert fields["format"] == "gst_jax.stream/1" and fields["capacity"] == 8
     assert fields["host"]["frames"] == SAVED_AT and fields["host"]["_lost"] == [103]
-    assert fields["host"]["_last_time"] == saved[1][SAVED_AT - 1][1][2]
+    assert fields["host"]["_clock"]["last_time"] == saved[1][SAVED_AT - 1][1][2]
     assert fields["stream"]["regions"] == repr(Regions("dtaci", 0.1))
     assert fields["stream"]["params_sha256"] is None           # constant velocity: no model
 
