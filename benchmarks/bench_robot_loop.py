@@ -21,6 +21,13 @@ program loaded from the persistent cache counts as one).
   compilations in the loop (one per capacity reached) and its slowest step.
 - no-rule: the tracker loop with `max_speed=None` (an id is one person whatever it does), for
   the coverage and radii a recycled id costs without the rule.
+- surge: a crowd that comes and goes (issue 92), on an empty cache, frames paced at the model's
+  period as a robot's loop is: `warm_up(40)` (up to 48 slots), then 40 walkers for 60 frames,
+  120 for 120 frames (128 slots: compiled in the background, constant velocity meanwhile, and
+  where a step overruns the period), 40 again for 150 frames. Reported: the median step
+  before, during and after, the longest frame in model periods (target: at most 2), the
+  frames after the surge until the median of 10 steps is back within 1.5x of before (target:
+  within 100), the frames of constant velocity by reason and the capacities in turn.
 
 The tracker loop: 400 frames; people enter at the edges of a 16 m square at random times
 (about 50 at once at the peak), walk straight at 0.5-1.5 m/s and leave after 10-60 s. The
@@ -49,9 +56,11 @@ import time
 
 import numpy as np
 
-PHASES = ("cold", "restart", "no-warm-up", "no-rule")
+PHASES = ("cold", "restart", "no-warm-up", "no-rule", "surge")
 FRAMES = 400
 STEP_S = 0.25
+# The surge's frames: 40 walkers, 120, 40 again.
+SURGE = (60, 120, 150)
 
 
 def crowd(frames: int = FRAMES, seed: int = 0) -> list[tuple]:
@@ -131,6 +140,44 @@ def grow(player, count_compiles) -> dict:
             "worst_step_s": worst, "capacity": player.state.capacity}
 
 
+def surge_frames() -> list[tuple[np.ndarray, np.ndarray]]:
+    """40 straight walkers, then 80 more, then the 40 alone (`SURGE` frames each)."""
+    rng = np.random.default_rng(2)
+    start, velocity = rng.uniform(-8, 8, (120, 2)), rng.uniform(-1, 1, (120, 2))
+    counts = [40] * SURGE[0] + [120] * SURGE[1] + [40] * SURGE[2]
+    return [(np.arange(n), (start + velocity * t * STEP_S)[:n]) for t, n in enumerate(counts)]
+
+
+def surge(player) -> dict:
+    """The surge's frames at the model's period (a frame that overran starts the next at once):
+    each `Stream.step`'s seconds, its fallback and the capacity after it."""
+    seconds, fallbacks, capacities = [], {}, []
+    due = time.perf_counter()
+    for t, (ids, xy) in enumerate(surge_frames()):
+        time.sleep(max(0.0, due - time.perf_counter()))
+        started = time.perf_counter()
+        out = player.step(ids, xy)
+        seconds.append(time.perf_counter() - started)
+        due = started + STEP_S
+        if out.fallback:
+            fallbacks[out.fallback] = fallbacks.get(out.fallback, 0) + 1
+        if not capacities or capacities[-1][1] != player.state.capacity:
+            capacities.append((t, player.state.capacity))
+    ms = 1e3 * np.array(seconds)
+    end = SURGE[0] + SURGE[1]
+    before = float(np.median(ms[10:SURGE[0]]))
+    back = next((k for k in range(SURGE[2] - 9)
+                 if np.median(ms[end + k:end + k + 10]) <= 1.5 * before), None)
+    return {"before_median_ms": before, "surge_median_ms": float(np.median(ms[SURGE[0]:end])),
+            "after_median_ms": float(np.median(ms[end + 100:])), "max_ms": float(ms.max()),
+            "max_frame": int(ms.argmax()), "max_periods": float(ms.max() / 1e3 / STEP_S),
+            "frames_back_within_1_5x": back, "longest_within_2_periods": bool(
+                ms.max() <= 2e3 * STEP_S), "back_within_100_frames": back is not None
+            and back <= 100, "fallback_frames": fallbacks, "capacities": capacities,
+            "compiled_s": {str(c): round(s, 2) for c, s in player._compiled.items()},
+            "overruns": player.overruns}
+
+
 def tracker_loop(player, count_compiles) -> dict:
     seconds, radius = [], []
     horizon = player.model.config.pred_len
@@ -180,6 +227,12 @@ def phase(name: str, model: str, cache: str) -> dict:
         result.update(first_step_s=time.perf_counter() - building, first_ids=len(out.ids),
                       first_prediction_at=time.time())
         player = Stream(run, regions=regions, non_finite="undetected")
+    if name == "surge":
+        warming = time.perf_counter()
+        result["capacities"] = list(player.warm_up(40))
+        result["warm_up_s"] = time.perf_counter() - warming
+        result["surge"] = surge(player)
+        return result
     if name != "no-warm-up":
         with count_compiles() as compiles:
             warming = time.perf_counter()
@@ -214,7 +267,7 @@ def main() -> None:
     cache = args.cache or os.path.join(scratch, "cache")
     rows = []
     for name in args.phases:
-        folder = os.path.join(scratch, name) if name == "no-warm-up" else cache
+        folder = os.path.join(scratch, name) if name in ("no-warm-up", "surge") else cache
         spawned = time.time()
         child = subprocess.run([sys.executable, __file__, "--child", name, "--model",
                                 args.model, "--cache", folder], capture_output=True, text=True)

@@ -101,9 +101,10 @@ def record(run, streams: Sequence[Iterable[FrameRows]], *, calibration: float = 
     for frames_of_file in filter(None, recorded):
         # A recorded file's ids name one person each (its windows assume so too): no
         # restarts for fast movers (ETH's annotations exceed a brisk walk at 46 % of steps).
+        # Every frame is the model's: a recording waits for it (no deadline).
         player = Stream(run, regions=conformal.Regions(None), convention=convention, seed=seed,
                         capacity=live_tracks(frames_of_file, run.model_config.obs_len),
-                        max_speed=None)
+                        max_speed=None, deadline_s=None)
         scores, masks, new_slots = [], [], []
         for index, (frame, ids, xy) in enumerate(frames_of_file):
             before = np.asarray(player.state.track_ids)

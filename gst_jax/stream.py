@@ -7,9 +7,15 @@
 Each track keeps its last `obs_len` positions with a detection mask in a slot of a fixed
 capacity, as a window's pedestrians do: a track that appears is partially detected (GST's
 point: it is predicted from the steps it was seen), one unseen for `obs_len` steps is dropped
-and its slot reused. Capacity grows by the buckets of `gst_jax.data.bucket_size`, so a crowd
-that changes size meets few compiled programs; `Stream.warm_up` compiles them all before the
-robot moves, and `compilation_cache=DIR` keeps them on disk for the next process.
+and its slot reused. Capacity follows the crowd by the buckets of `gst_jax.data.bucket_size`,
+so that a crowd that changes size meets few compiled programs: it grows at once, and shrinks
+(the tracks compacted) once they have fitted a smaller bucket for `SHRINK_AFTER` frames in a
+row. `Stream.warm_up` compiles them all before the robot moves, and `compilation_cache=DIR`
+keeps them on disk for the next process. A frame the model cannot predict in time (a capacity
+whose program still compiles, in the background; a step past its deadline; a step that failed)
+gets constant velocity, computed on the host with the tracks kept whole
+(`gst_jax.stream_fallback`, `StreamOutput.fallback`), and the loop goes on. Compiles, capacity
+changes, overruns and fallbacks are logged (logger "gst_jax.stream"); nothing is printed.
 
 A tracker's id names one person until the tracker says otherwise: `Stream.forget(ids)` or
 `step(..., lost=ids)` ends those tracks (an id the tracker recycles then starts a new one),
@@ -53,13 +59,16 @@ import functools
 import logging
 import math
 import numbers
+import weakref
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
+from time import perf_counter
 from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
 
-from gst_jax import conformal, stream_file
+from gst_jax import conformal, stream_fallback, stream_file
 from gst_jax.adaptation import Adaptation
 from gst_jax.compiles import use_persistent_cache
 from gst_jax.config import TimeGrid, check as check_config, rules
@@ -68,7 +77,7 @@ from gst_jax.data import bucket_size
 from gst_jax.data.batching import LARGEST_COORDINATE
 from gst_jax.errors import DataError
 from gst_jax.model import Params
-from gst_jax.predict import compile_checked
+from gst_jax.predict import check_compiler_room, compile_checked
 from gst_jax.predictors import ConstantVelocity, Predictor, Standing
 from gst_jax.stream_core import (
     FREE,
@@ -89,6 +98,7 @@ from gst_jax.stream_time import Clock
 __all__ = [
     # the host: numpy in and out, ids, capacity growth, times, compiling ahead
     "Stream", "StreamOutput", "MAX_SPEED", "MAX_ACCELERATION", "JUMP_TOLERANCE", "NON_FINITE",
+    "SHRINK_AFTER", "FALLBACKS",
     # re-exported: the pure core (gst_jax.stream_core) and the regions (gst_jax.conformal)
     "FREE", "Frame", "Gate", "StreamModel", "StreamState", "adapt", "as_batch", "init_state",
     "make_step", "observe", "predict_slots", "update_regions", "Regions",
@@ -109,6 +119,16 @@ MAX_ACCELERATION = 4.0
 JUMP_TOLERANCE = 1.0
 # What `Stream(non_finite=...)` does with a detection whose position is NaN or infinite.
 NON_FINITE = ("raise", "undetected")
+# A stream shrinks once the tracks it holds have fitted a smaller bucket of
+# `gst_jax.data.bucket_size` for this many frames in a row (5 s at 0.25 s a step): a crowd that
+# hovers at a bucket's edge keeps its capacity, and one that has gone gives back what its larger
+# program costs a step (issue 92's report: crowd_d at 128 slots, 1.9 s a step with 40 people
+# where 48 slots took 76 ms).
+SHRINK_AFTER = 20
+# Why constant velocity, not the model, predicted a frame (`StreamOutput.fallback`): the
+# program of the capacity the crowd needs compiles in the background; the model's step took
+# longer than the deadline (or an earlier one that did still runs); the model's step failed.
+FALLBACKS = ("compiling", "overrun", "error")
 
 
 @functools.lru_cache(maxsize=16)
@@ -141,7 +161,12 @@ class StreamOutput(NamedTuple):
     predictions start from (`futures[..., k, :]` is at time + (k + 1) step_s); ticks, the
     model steps this frame reached: 0 where it reached none (the last tick's ids, futures and
     radii again, nothing scored: `repeated`), more than 1 after a gap (delayed: the last
-    one's scores). Without: time None, ticks 1."""
+    one's scores). Without: time None, ticks 1.
+
+    fallback: None where the model predicted this frame; else why constant velocity did
+    (`FALLBACKS`: "compiling", "overrun", "error"; `Stream`'s deadline_s), each track's last
+    displacement repeated, with the radii in force and nothing scored (`delayed` all masked).
+    """
 
     ids: np.ndarray
     futures: np.ndarray
@@ -150,6 +175,7 @@ class StreamOutput(NamedTuple):
     restarted: np.ndarray = np.zeros(0, np.int32)
     time: float | None = None
     ticks: int = 1
+    fallback: str | None = None
 
     @property
     def repeated(self) -> bool:
@@ -187,6 +213,17 @@ class Stream:
     compilation_cache: a folder where JAX keeps every compiled program of this process
     (`gst_jax.compiles.use_persistent_cache`): a restarted robot loads its programs from it
     instead of compiling them again. None: the process's own setting.
+    deadline_s: how long a frame waits for the model (default "step": the model's period,
+    `step_s`). A crowd that needs a capacity this stream has not compiled gets its program
+    compiled in the background (`warm_up` compiles ahead), and a model's step not done in
+    time runs on unused: meanwhile constant velocity predicts, on the host, the tracks kept
+    whole for the model to take over (`StreamOutput.fallback`, as where the model's step
+    fails). None: every frame waits for the model, compiling included (a recording replayed
+    or measured). Each model step runs in a thread of the stream's with a deadline.
+    shrink_after: frames in a row whose tracks fit a smaller bucket before the capacity
+    shrinks to it, the tracks compacted (default SHRINK_AFTER, 20); None: never.
+    Compiles (with their seconds), capacity changes, overruns and constant velocity's frames
+    are logged (`logging`, logger "gst_jax.stream"); nothing is printed.
     """
 
     # The robot's id among the tracks: no tracker's.
@@ -198,7 +235,8 @@ class Stream:
                  non_finite: str = "raise", compilation_cache: str | None = None,
                  adaptation: Adaptation | None = None,
                  max_acceleration: float | None = MAX_ACCELERATION,
-                 jump_tolerance: float = JUMP_TOLERANCE, step_s: float | None = None):
+                 jump_tolerance: float = JUMP_TOLERANCE, step_s: float | None = None,
+                 deadline_s: float | str | None = "step", shrink_after: int | None = SHRINK_AFTER):
         if non_finite not in NON_FINITE:
             raise DataError(f"Stream: non_finite must be one of {NON_FINITE}, got "
                             f"{non_finite!r}")
@@ -207,6 +245,14 @@ class Stream:
                             "a positive number of m/s^2 (or None)"),
                 _gate_limit("jump_tolerance", jump_tolerance, "a number of metres, 0 or more",
                             0.0)]
+        if deadline_s != "step" and deadline_s is not None and not (
+                isinstance(deadline_s, numbers.Real) and 0 < deadline_s < math.inf):
+            raise DataError(f"Stream: deadline_s must be a positive number of seconds, \"step\" "
+                            f"(the model's step_s) or None (wait), got {deadline_s!r}")
+        if shrink_after is not None and not (isinstance(shrink_after, numbers.Integral)
+                                             and shrink_after >= 1):
+            raise DataError(f"Stream: shrink_after must be a number of frames, 1 or more (or "
+                            f"None: never shrink), got {shrink_after!r}")
         if compilation_cache is not None:
             use_persistent_cache(compilation_cache)
         self.model: Predictor
@@ -241,7 +287,22 @@ class Stream:
             regions.init(1, config.pred_len))
         self._step = _jitted_step(self.model, regions, self.gate, adaptation,
                                   config.step_s)
-        self._checked: set[int] = set()      # capacities whose step `compile_checked` saw
+        self.deadline_s: float | None = (config.step_s if deadline_s == "step" else
+                                         None if deadline_s is None else float(deadline_s))
+        self.shrink_after = shrink_after
+        # Capacities: the smallest it shrinks to; and its programs, with their compiles' seconds.
+        self._floor = self.state.capacity
+        self._compiled: dict[int, float] = {}
+        self._compiling: tuple[int, Future] | None = None   # (capacity, its background compile)
+        self._failed: set[int] = set()                       # capacities that failed to compile
+        # Frames in a row whose tracks fitted a smaller bucket, and the most tracks over them.
+        self._small_frames, self._small_peak = 0, 0
+        self._worker: ThreadPoolExecutor | None = None      # where model steps run, timed
+        self._running: Future | None = None     # a step past its deadline, still running
+        self.fallbacks = 0           # frames predicted by constant velocity (`FALLBACKS`)
+        self.overruns = 0            # model steps that took longer than the model's period
+        self._fallback: str | None = None        # why the last step's predictions are CV's
+        self._fallback_since, self._error = 0, ""
 
     def step(self, ids, positions, robot_xy=None, *, time: float | None = None,
              lost=None) -> StreamOutput:
@@ -313,7 +374,7 @@ class Stream:
         futures = np.moveaxis(futures[:, :, keep], 2, 0)                        # (L, K, P, 2)
         output = StreamOutput(track_ids[keep], futures[:, 0] if self.mean else futures,
                               None if radii is None else radii[keep], delayed, restarted,
-                              time, ticks)
+                              time, ticks, self._fallback)
         self._clock.last_output = {"ids": output.ids, "futures": output.futures,
                                    "radii": output.radii}
         return output
@@ -331,7 +392,8 @@ class Stream:
                                   np.zeros(shape, np.float32)]
             delayed = conformal.DelayedScores(*nothing)
         return StreamOutput(last["ids"], last["futures"], last["radii"], delayed,
-                            self._restarted(restarted, time), clock.tick_time(clock.ticks - 1), 0)
+                            self._restarted(restarted, time), clock.tick_time(clock.ticks - 1), 0,
+                            self._fallback)
 
     def _restarted(self, ids: np.ndarray, time: float | None) -> np.ndarray:
         """The tracks restarted at a frame (sorted, the robot left out), counted and logged."""
@@ -387,7 +449,7 @@ class Stream:
         try:
             for capacity in capacities:         # the step on the tracks as they are, unkept
                 self.state = state
-                self.state = self._grown(capacity)
+                self.state = self._resized(capacity)
                 self._run(np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros(0, np.int32))
         finally:
             self.state = state
@@ -395,70 +457,293 @@ class Stream:
 
     def _advance(self, ids: np.ndarray, positions: np.ndarray, idle: int = 0) -> tuple:
         """One model step over a checked frame, after `idle` steps where nobody was detected
-        (run without the model): the state moves on; returns it and the step's outputs as
-        numpy arrays."""
+        (run without the model), in a state of the capacity its tracks need (`_fit`): the state
+        moves on; returns it and the step's outputs as numpy arrays. Where the model cannot
+        give this frame's predictions in time, constant velocity gives them, on the host
+        (`_constant_velocity`; why: `self._fallback`, `StreamOutput.fallback`)."""
         lost = np.zeros(0, np.int32)
         if self._lost:
             held = set(np.asarray(self.state.track_ids).tolist())
             lost = np.array(sorted(self._lost & held), np.int32)
             self._lost.clear()
-        if len(ids) > self.state.capacity:
-            self.state = self._grown(bucket_size(len(ids)))
-        while True:
-            state, *outputs = self._run(ids, positions, lost, idle)
-            if int(state.dropped) == int(self.state.dropped):
-                break
-            self.state = self._grown(bucket_size(self.state.capacity + 1))
-        self.state, self.frames = state, self.frames + 1 + idle
-        return (state, *outputs)
+        self._fit(ids, lost, idle)
+        reason, outcome = self._model_step(ids, positions, lost, idle)
+        if outcome is None:
+            outcome = self._constant_velocity(ids, positions, lost, idle)
+        self._note_fallback(reason)
+        self.state, self.frames = outcome[0], self.frames + 1 + idle
+        return outcome
+
+    def _model_step(self, ids: np.ndarray, positions: np.ndarray, lost: np.ndarray,
+                    idle: int) -> tuple[str | None, tuple | None]:
+        """(None, the model's step) or (why not, None): "compiling" (this capacity's program
+        compiles in the background), "overrun" (this step, or an earlier one still running,
+        took longer than `deadline_s`), "error" (it raised; logged)."""
+        if self.state.capacity not in self._compiled and not self._compiles_inline():
+            return "compiling", None
+        if self._running is not None:
+            if not self._running.done():
+                return "overrun", None
+            self._running = None             # its outputs came too late to be anyone's
+        try:
+            outcome = self._run_in_time(ids, positions, lost, idle)
+        except DataError:
+            raise                            # a refusal (memory), with its fix: the user's
+        except Exception as error:           # any other failure: the robot goes on, on CV
+            self._error = f"{type(error).__name__}: {str(error).splitlines()[0][:300]}"
+            logger.debug("the model's step at frame %d failed", self.frames, exc_info=True)
+            return "error", None
+        return ("overrun", None) if outcome is None else (None, outcome)
+
+    def _compiles_inline(self) -> bool:
+        """Whether a program this stream lacks is compiled at its step, the loop waiting:
+        without a deadline, and for its first program (before the loop runs)."""
+        return self.deadline_s is None or not self._compiled
+
+    def _args(self, state: StreamState, ids: np.ndarray, positions: np.ndarray,
+              lost: np.ndarray, idle: int = 0) -> tuple:
+        """The jitted step's arguments: the frame padded to the state's capacity."""
+        width = state.capacity
+        frame = Frame(np.pad(ids, (0, width - len(ids)), constant_values=FREE),
+                      np.pad(positions, [(0, width - len(ids)), (0, 0)]).astype(np.float32),
+                      np.pad(lost, (0, width - len(lost)), constant_values=FREE))
+        return (self.params, state, frame, self.key, np.int32(self.frames), np.int32(idle))
 
     def _run(self, ids: np.ndarray, positions: np.ndarray, lost: np.ndarray, idle: int = 0
              ) -> tuple:
         """The jitted step on the state as it is, frames padded to the capacity (one compiled
-        step per capacity): the state (on the device) and the outputs as numpy."""
-        width = self.state.capacity
-        frame = Frame(np.pad(ids, (0, width - len(ids)), constant_values=FREE),
-                      np.pad(positions, [(0, width - len(ids)), (0, 0)]).astype(np.float32),
-                      np.pad(lost, (0, width - len(lost)), constant_values=FREE))
-        args = (self.params, self.state, frame, self.key, np.int32(self.frames), np.int32(idle))
-        if width not in self._checked and isinstance(self.model, StreamModel) and (
-                self.model.convention == "gst"):
-            # Before a capacity's first step: refuse where memory cannot hold its compiling
-            # or its call, say so where the crowd is large for the exact model (issue 78).
-            compile_checked(self._step, args, self.model.config, width,
-                            f"a stream step over {width} slots",
-                            slower_than_s=self.model.config.step_s)
-            self._checked.add(width)
-        state, *outputs = self._step(*args)
-        return (state, *_host_tree(outputs))
+        step per capacity, compiled here if this stream has not yet): the state (on the
+        device) and the outputs as numpy."""
+        args = self._args(self.state, ids, positions, lost, idle)
+        self._compile_inline(args)
+        return _call(self._step, args)
 
-    def _grown(self, capacity: int) -> StreamState:
-        """The same tracks in `capacity` slots (the new ones free and, per track, with fresh
-        regions); numpy on the host, so that growing compiles nothing."""
-        state, extra = self.state, capacity - self.state.capacity
+    def _run_in_time(self, ids: np.ndarray, positions: np.ndarray, lost: np.ndarray,
+                     idle: int) -> tuple | None:
+        """`_run`, timed: with a deadline, in this stream's worker thread, None where it is not
+        done by then (it runs on, `self._running`, its outputs never used). A step slower than
+        the model's period is an overrun: counted (`overruns`) and logged."""
+        args = self._args(self.state, ids, positions, lost, idle)
+        self._compile_inline(args)
+        started = perf_counter()
+        if self.deadline_s is None:
+            outcome = _call(self._step, args)
+        else:
+            if self._worker is None:
+                self._worker = ThreadPoolExecutor(1, thread_name_prefix="gst_jax.stream.step")
+                weakref.finalize(self, self._worker.shutdown, wait=False)
+            job = self._worker.submit(_call, self._step, args)
+            try:
+                outcome = job.result(timeout=self.deadline_s)
+            except TimeoutError:             # logged as constant velocity's start
+                self._running, outcome = job, None
+        seconds = perf_counter() - started
+        if seconds > self.grid.step_s:
+            self.overruns += 1
+            if outcome is not None:          # waited for: deadline_s None, or beyond step_s
+                log = logger.warning if self.overruns == 1 else logger.debug
+                log("frame %d: the model's step over %d slots took %.3f s, longer than its "
+                    "period (%g s; overrun %d)", self.frames, self.state.capacity, seconds,
+                    self.grid.step_s, self.overruns)
+        return outcome
 
-        def pad(array, axis=0, value=0):
+    def _compile_inline(self, args: tuple) -> None:
+        """Compile the step for `args`, the loop waiting, unless this stream has it."""
+        capacity = args[1].capacity
+        if capacity not in self._compiled:
+            self._compiled[capacity] = _compile(self._step, args, self._checked_config(),
+                                                self.grid.step_s, "")
+
+    def _checked_config(self):
+        """The model config whose memory `compile_checked` weighs before a capacity's first
+        step (issue 78: a gst_jax model's; None for CrowdNav++'s and predictors without one)."""
+        if isinstance(self.model, StreamModel) and self.model.convention == "gst":
+            return self.model.config
+        return None
+
+    def _fit(self, ids: np.ndarray, lost: np.ndarray, idle: int) -> None:
+        """Give the state the capacity this frame's tracks need (the module docstring): grown
+        to the smallest capacity compiled that holds them, else to their bucket (its program
+        compiled in the background, constant velocity meanwhile, where there is a deadline);
+        shrunk, the tracks compacted, once they have fitted a smaller bucket for
+        `shrink_after` frames in a row and its program is compiled."""
+        self._collect_compile()
+        held = self._held_after(ids, lost, idle)
+        capacity = self.state.capacity
+        holding = sorted(c for c in self._compiled if c >= held)
+        if held > capacity:
+            target = holding[0] if holding else bucket_size(held)
+            resized = self._resized(target)
+            self._compile_behind(resized, held)
+            self._resize(resized, held)
+        elif capacity not in self._compiled:         # constant velocity until it compiles
+            if holding:
+                self._resize(self._resized(holding[0]), held)
+            else:
+                self._compile_behind(self.state, held)
+        else:
+            self._shrink(held)
+
+    def _shrink(self, held: int) -> None:
+        """Count the frames in a row whose tracks fit a smaller bucket (and the most tracks
+        held over them); after `shrink_after` of them, move to the bucket of that most,
+        compacted, once its program is compiled (in the background meanwhile)."""
+        capacity = self.state.capacity
+        if bucket_size(held) >= capacity or capacity <= self._floor:
+            self._small_frames, self._small_peak = 0, 0
+            return
+        self._small_frames += 1
+        self._small_peak = max(self._small_peak, held)
+        if self.shrink_after is None or self._small_frames < self.shrink_after:
+            return
+        smaller = self._resized(max(bucket_size(self._small_peak), self._floor))
+        if smaller.capacity in self._compiled or self._compiles_inline():
+            self._resize(smaller, held)
+        else:
+            self._compile_behind(smaller, held)
+
+    def _resize(self, resized: StreamState, held: int) -> None:
+        """Take the state `_resized` gave, and say so."""
+        logger.info("frame %d: capacity %d -> %d slots (%d tracks%s)", self.frames,
+                    self.state.capacity, resized.capacity, held,
+                    f"; at most {self._small_peak} for {self._small_frames} frames"
+                    if resized.capacity < self.state.capacity else "")
+        self.state = resized
+        self._small_frames, self._small_peak = 0, 0
+
+    def _held_after(self, ids: np.ndarray, lost: np.ndarray, idle: int) -> int:
+        """The tracks the state holds after `idle` empty steps and this frame (`observe`'s
+        slots): those seen in the history still kept, less the lost, plus the new ids."""
+        track_ids = np.asarray(self.state.track_ids)
+        kept = ((track_ids != FREE) & np.asarray(self.state.detected)[:, 1 + idle:].any(axis=1)
+                & ~np.isin(track_ids, lost))
+        return int(kept.sum() + np.isin(ids, track_ids[kept], invert=True).sum())
+
+    def _compile_behind(self, state: StreamState, held: int) -> None:
+        """Compile the step at `state`'s capacity in the background (one compile at a time),
+        where the loop must not wait for it; a capacity the crowd grew into is announced
+        once, with what the wait was for the compiles so far. A capacity whose compiling
+        the memory cannot hold is refused here, in one line (`DataError`)."""
+        capacity = state.capacity
+        if (self._compiles_inline() or capacity in self._compiled or capacity in self._failed
+                or self._compiling is not None):
+            return
+        what = f"a stream step over {capacity} slots"
+        check_compiler_room(what)
+        if capacity > self.state.capacity:
+            slowest = max(self._compiled.values())
+            logger.warning(
+                "frame %d: %d tracks need %d slots, beyond the capacities compiled (%s): %s "
+                "compiles in the background, and constant velocity predicts until it is done "
+                "(StreamOutput.fallback \"compiling\"): about %.1f s, this stream's slowest "
+                "compile so far (longer where that came from the compilation cache); "
+                "Stream.warm_up(%d) compiles it ahead", self.frames, held, capacity,
+                ", ".join(map(str, sorted(self._compiled))), what, slowest, held)
+        args = self._args(jax.tree.map(np.array, _host_tree(state)), np.zeros(0, np.int32),
+                          np.zeros((0, 2)), np.zeros(0, np.int32))
+        self._compiling = (capacity, _compiler().submit(
+            _compile, self._step, args, self._checked_config(), self.grid.step_s,
+            " in the background"))
+
+    def _collect_compile(self) -> None:
+        """Take the background compile that has finished: its program is this stream's; a
+        refusal (memory) is raised here, another failure logged, that capacity not tried
+        again."""
+        if self._compiling is None or not self._compiling[1].done():
+            return
+        capacity, job = self._compiling
+        self._compiling = None
+        try:
+            self._compiled[capacity] = job.result()
+        except DataError:
+            raise
+        except Exception as error:           # constant velocity while it is needed
+            self._failed.add(capacity)
+            logger.error("compiling the stream step over %d slots failed (%s: %s): constant "
+                         "velocity predicts while the crowd needs them", capacity,
+                         type(error).__name__, str(error).splitlines()[0][:300])
+
+    def _finish_compiling(self) -> None:
+        """Wait for the background compile, if any, and take it (`_collect_compile`)."""
+        if self._compiling is not None:
+            self._compiling[1].exception()
+            self._collect_compile()
+
+    def _constant_velocity(self, ids: np.ndarray, positions: np.ndarray, lost: np.ndarray,
+                           idle: int) -> tuple:
+        """The step without the model, in numpy (`gst_jax.stream_fallback`): the tracks move
+        on as the core's step moves them, nothing is scored, every track detected at the last
+        two steps is predicted at constant velocity, with the radii in force."""
+        state = _host_tree(self.state)
+        gate = None if self.gate is None else self.gate.in_steps(self.grid.step_s)
+        nobody = np.zeros(0, np.int32)
+        for step_ids in [nobody] * idle + [ids]:
+            state = stream_fallback.observe(state, step_ids, positions[:len(step_ids)], lost,
+                                            gate)
+            state = stream_fallback.skip_scoring(state, self.regions, self._fresh_regions)
+        pred_len = self.grid.pred_len
+        samples = self.model.num_samples if isinstance(self.model, StreamModel) else 1
+        futures, predicted = stream_fallback.constant_velocity(
+            state, pred_len, 1 if self.mean else samples)
+        delayed = None if self.regions is None else stream_fallback.nothing_scored(
+            state.capacity, pred_len)
+        return (state, futures, predicted,
+                stream_fallback.radii_in_force(state, self.regions, pred_len), delayed)
+
+    def _note_fallback(self, reason: str | None) -> None:
+        """Count a frame predicted by constant velocity, and log where that starts or ends."""
+        if reason is not None:
+            self.fallbacks += 1
+        if reason == self._fallback:
+            return
+        if reason is None:
+            logger.info("frame %d: the model predicts again, after %d frames of constant "
+                        "velocity", self.frames, self.frames - self._fallback_since)
+        else:
+            why = {"compiling": f"the step over {self.state.capacity} slots is compiling in "
+                                "the background",
+                   "overrun": f"the model's step is not done after {self.deadline_s} s "
+                              "(deadline_s)",
+                   "error": f"the model's step failed ({self._error})"}[reason]
+            logger.warning("frame %d: constant velocity predicts: %s", self.frames, why)
+            self._fallback_since = self.frames
+        self._fallback = reason
+
+    def _resized(self, capacity: int) -> StreamState:
+        """The same tracks in `capacity` slots, numpy on the host (resizing compiles nothing):
+        growing adds free slots at the end (per track, with fresh regions); shrinking compacts
+        the tracks into the first slots, in their order, each slot's history, flags, score
+        buffer, per-slot conformal state and issued predictions moving with it."""
+        state = _host_tree(self.state)
+        free = state.track_ids == FREE
+        order = np.concatenate([np.flatnonzero(~free), np.flatnonzero(free)])
+        keep = order[:capacity] if capacity < state.capacity else np.arange(state.capacity)
+        assert (~free).sum() <= capacity, "a stream shrinks only to hold its tracks"
+        extra = capacity - len(keep)
+
+        def slots(array, axis=0, value=0):
             widths = [(0, 0)] * array.ndim
             widths[axis] = (0, extra)
-            return np.pad(array, widths, constant_values=value)
+            return np.pad(np.take(array, keep, axis=axis), widths, constant_values=value)
 
-        grown = state.replace(track_ids=pad(state.track_ids, value=FREE),
-                              positions=pad(state.positions), detected=pad(state.detected),
-                              fresh=pad(state.fresh), restarted=pad(state.restarted))
+        resized = state.replace(track_ids=slots(state.track_ids, value=FREE),
+                                positions=slots(state.positions),
+                                detected=slots(state.detected), fresh=slots(state.fresh),
+                                restarted=slots(state.restarted))
         if self.adaptation is not None:       # issued predictions: (P, C, ...) per slot
-            grown = grown.replace(adaptation=state.adaptation._replace(
-                issued=jax.tree.map(lambda a: pad(a, 1), state.adaptation.issued)))
+            resized = resized.replace(adaptation=state.adaptation._replace(
+                issued=jax.tree.map(lambda a: slots(a, 1), state.adaptation.issued)))
         if self.regions is None:
-            return grown
-        feed = state.feed._replace(predicted=pad(state.feed.predicted, 1),
-                                   valid=pad(state.feed.valid, 1),
-                                   issued=pad(state.feed.issued, 1))
+            return resized
+        feed = state.feed._replace(predicted=slots(state.feed.predicted, 1),
+                                   valid=slots(state.feed.valid, 1),
+                                   issued=slots(state.feed.issued, 1))
         regions = state.regions
         if regions is not None and not self.regions.pooled:
             regions = jax.tree.map(
-                lambda old, new: np.concatenate([old, np.repeat(new, extra, axis=0)]),
+                lambda old, new: np.concatenate([old[keep], np.repeat(new, extra, axis=0)]),
                 regions, self._fresh_regions)
-        return grown.replace(feed=feed, regions=regions)
+        return resized.replace(feed=feed, regions=regions)
 
     # --- Saved and restored: a restarted robot's warm tracks and discs ---------------------
 
@@ -471,6 +756,11 @@ class Stream:
         "_lost": stream_file.TRACK_IDS,
         "_clock": stream_file.Kept(Clock.as_json, Clock.from_json),
         "key": stream_file.KEY,
+        "_floor": stream_file.COUNT,
+        "_small_frames": stream_file.COUNT,
+        "_small_peak": stream_file.COUNT,
+        "fallbacks": stream_file.COUNT,
+        "overruns": stream_file.COUNT,
     }
 
     def save(self, path: str | Path) -> Path:
@@ -531,6 +821,35 @@ def _predictor_grid(predictor: ConstantVelocity | Standing, step_s) -> TimeGrid:
         raise DataError(f"Stream: {type(predictor).__name__} needs obs_len of 2 or more (a "
                         f"displacement), got {grid.obs_len}")
     return grid
+
+
+def _compile(step: Any, args: tuple, config, step_s: float, where: str) -> float:
+    """Compile the jitted `step` for `args` (its capacity's program, which jit's cache then
+    holds), checked first where `config` is a gst_jax model's (`compile_checked`: memory, a
+    large crowd; issue 78); logged, and returns its seconds."""
+    capacity = args[1].capacity
+    what = f"a stream step over {capacity} slots"
+    started = perf_counter()
+    if config is None:
+        step.trace(*args).lower().compile()
+    else:
+        compile_checked(step, args, config, capacity, what, slower_than_s=step_s)
+    seconds = perf_counter() - started
+    logger.info("compiled %s in %.1f s%s", what, seconds, where)
+    return seconds
+
+
+@functools.cache
+def _compiler() -> ThreadPoolExecutor:
+    """The thread that compiles streams' programs in the background, one at a time (each
+    takes the cores it finds)."""
+    return ThreadPoolExecutor(1, thread_name_prefix="gst_jax.stream.compile")
+
+
+def _call(step: Callable, args: tuple) -> tuple:
+    """The jitted step on `args`: the state (on the device) and the outputs as numpy."""
+    state, *outputs = step(*args)
+    return (state, *_host_tree(outputs))
 
 
 def _gate_limit(name: str, value, must_be: str, least: float | None = None) -> float | None:

@@ -33,7 +33,7 @@ LAYERS = (
     ("outputs", {"gst_jax.losses", "gst_jax.metrics", "gst_jax.predict.", "gst_jax.interop",
                  "gst_jax.predictors",
                  "gst_jax.crowdnav", "gst_jax.conformal.", "gst_jax.stream", "gst_jax.stream_core",
-                 "gst_jax.stream_time",
+                 "gst_jax.stream_time", "gst_jax.stream_fallback",
                  "gst_jax.stream_file",
                  "gst_jax.prediction_files", "gst_jax.figures", "gst_jax.simulate",
                  # the simulators' core (but ORCA, numerics), the paper's, CrowdNav++'s

@@ -37,8 +37,9 @@ def frames_of(tracks) -> list[tuple[int, np.ndarray, np.ndarray]]:
 
 
 def replay(run, tracks, **options) -> dict[int, stream.StreamOutput]:
-    """The stream's output after each frame, by frame id."""
-    player = stream.Stream(run, **options)
+    """The stream's output after each frame, by frame id, every frame the model's (a recording
+    replayed waits for the model: `deadline_s=None`)."""
+    player = stream.Stream(run, deadline_s=None, **options)
     return {f: player.step(ids, xy) for f, ids, xy in frames_of(tracks)}
 
 
@@ -164,7 +165,7 @@ def test_regions_are_issued_with_the_predictions_and_scored_k_steps_later(method
     grid = run.model_config.grid
     tracks = to_model_rate(read_tracks(SIM), 4.0, grid.hz)
     regions = conformal.Regions(method, alpha=0.1, pooled=pooled)
-    player = stream.Stream(run, regions=regions)
+    player = stream.Stream(run, regions=regions, deadline_s=None)     # every frame the model's
     covered = scored = 0
     issued_before = {}
     for t, (_, ids, xy) in enumerate(frames_of(tracks)):
@@ -196,7 +197,8 @@ def test_measuring_a_recording_gives_what_a_stream_with_regions_issues(method, p
     tracks = to_model_rate(read_tracks(SIM), 4.0, run.model_config.grid.hz)
     frames = frames_of(tracks)[:80]
     regions = conformal.Regions(method, 0.1, pooled, options)
-    player = stream.Stream(run, regions=regions, capacity=coverage.live_tracks(frames, 8))
+    player = stream.Stream(run, regions=regions, capacity=coverage.live_tracks(frames, 8),
+                           deadline_s=None)
     delayed = [player.step(ids, xy).delayed for _, ids, xy in frames]
     recording = coverage.record(run, [iter(frames)], calibration=0.25)
     result, _ = coverage.measure(recording, method, 0.1, pooled, options)
@@ -482,7 +484,7 @@ def test_each_capacitys_step_is_checked_before_it_first_runs(sim_run, monkeypatc
         return check(program, args, config, slots, what, **options)
 
     monkeypatch.setattr(stream, "compile_checked", recorded)
-    player = stream.Stream(sim_run, max_speed=None)
+    player = stream.Stream(sim_run, max_speed=None, deadline_s=None)    # compiles in the loop
     xy = walkers(12, 3)
     for t, people in enumerate((4, 12, 12)):
         player.step(np.arange(people), xy[t, :people])
