@@ -242,7 +242,7 @@ class TimeGrid:
     prediction files and the simulator follow it."""
 
     step_s: float = setting(
-        0.4, "the model's time step: data at a multiple of its rate are resampled to it",
+        0.4, "the model's time step: data at other rates are resampled to it",
         low=0, low_open=True, high=60)
     obs_len: int = setting(8, "observed steps", low=1, high=MAX_STEPS)
     pred_len: int = setting(12, "predicted steps", low=1, high=MAX_STEPS)
@@ -287,8 +287,9 @@ class DataConfig(_FromDict):
         or a glob of text files (`frame ped x y`, or CSV with a header) or TrajNet++ ndjson.
       fps: frame ids per second of `data` (25 for ETH/UCY's video frames, 10 for a 10 Hz
         tracker numbering its samples 0, 1, 2, ...); annotations at a multiple of the model's
-        rate are resampled to it, others refused. None: a TrajNet++ file's own rate, else
-        annotations taken to be one model step apart.
+        rate keep every k-th, others down to half its rate are interpolated to its steps
+        (`data.readers.to_model_rate`). None: a TrajNet++ file's own rate, else annotations
+        taken to be one model step apart.
       scale: metres per unit of `data`'s coordinates.
       columns: which columns of `data`'s text files hold frame, pedestrian id, x and y:
         four comma-separated header names or column numbers counted from 1 (`--columns`,
@@ -327,8 +328,9 @@ class DataConfig(_FromDict):
         "and labels take its name)", kind=str, optional=True)
     fps: float | None = setting(
         None, "frame ids per second of --data (e.g. 10 for a 10 Hz tracker numbering samples "
-        "0, 1, 2...); rates that are a multiple of the model's (2.5 Hz for the paper's) are "
-        "resampled, others refused", kind=float, low=0, low_open=True, high=10_000,
+        "0, 1, 2...); a multiple of the model's rate (2.5 Hz for the paper's) keeps every "
+        "k-th row, other rates down to half the model's are interpolated to its steps",
+        kind=float, low=0, low_open=True, high=10_000,
         optional=True, default_says="an ndjson file's own rate, else rows one model step apart")
     scale: float = setting(1.0, "metres per unit of --data's coordinates", low=0,
                            low_open=True, high=1e6)

@@ -1,4 +1,4 @@
-"""Your own data: any rate that is a multiple of 2.5 Hz, any unit, every model, fine-tuning."""
+"""Your own data: any rate the model's steps fit, any unit, every model, fine-tuning."""
 
 from __future__ import annotations
 
@@ -76,13 +76,14 @@ def _command(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess
                           timeout=600, cwd=cwd)
 
 
-def test_a_rate_that_is_not_a_multiple_of_2_5hz_is_refused(tmp_path):
+def test_a_rate_whose_steps_fall_between_frame_ids_is_refused(tmp_path):
     result = _command("gst_jax.train", "--data", str(SAMPLE), "--fps", "3",
                       "--workdir", str(tmp_path / "run"))
     assert result.returncode == 1 and "Traceback" not in result.stderr
     assert result.stderr.strip().splitlines()[-1] == (
-        f"error: {SAMPLE}: annotated at 3 Hz (a row every 1 frame ids at 3 per second), which "
-        "is not a multiple of the model's 2.5 Hz")
+        f"error: {SAMPLE}: annotated at 3 Hz (a row every frame id at 3 per second), not a "
+        "multiple of the model's 2.5 Hz, and its 0.4 s steps would fall between frame ids (1.2 "
+        "apart); number its frames in finer units (frame ids x5, read with --fps 15)")
     assert not (tmp_path / "run").exists()
 
 

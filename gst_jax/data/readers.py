@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import fractions
 import json
 import math
 import warnings
@@ -24,6 +25,11 @@ LARGEST_ID = 2 ** 53
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048}
 # What a text file's columns hold, in the order `--columns` names them.
 ROLES = ("frame", "pedestrian id", "x", "y")
+# A file's rows at most this many model steps apart are interpolated between when its rate
+# is not a multiple of the model's (`interpolate_to_steps`), as `Stream.step(..., time=)` does
+# a tracker's frames (gst_jax.stream_time): farther apart, a straight line would invent the
+# path the model is to predict.
+MAX_INTERPOLATED_STEPS = 2
 # Header names recognised without --columns (compared in lower case), per role.
 HEADER_NAMES = {"frame": ("frame", "frame_id"),
                 "pedestrian id": ("id", "ped", "ped_id", "pedestrian", "pedestrian_id",
@@ -298,26 +304,95 @@ def _build_tracks(path: Path, rows: list, drop_off_grid: bool = False) -> Tracks
                   xy=xy[order], frame_step=frame_step)
 
 
-def to_model_rate(tracks: Tracks, fps: float | None, model_hz: float, scale: float = 1.0
-                  ) -> Tracks:
-    """Tracks at the model's rate and in metres: annotations at k times `model_hz` keep every
-    k-th one; any other rate is refused. fps: frame ids per second (None: the file's stated
-    rate, else annotations taken to be at the model's rate); scale: metres per unit."""
+def to_model_rate(tracks: Tracks, fps: float | None, model_hz: float, scale: float = 1.0, *,
+                  own: bool = True) -> Tracks:
+    """Tracks at the model's rate and in metres. fps: frame ids per second (None: the file's
+    stated rate, else annotations taken to be at the model's rate); scale: metres per unit;
+    own: a `--data` file (the refusals name its flags), not a bundled scene.
+
+    Annotated at k times `model_hz` (k a whole number): every k-th annotation is kept, from
+    the file's first frame, the rows themselves. At any other rate down to
+    model_hz / MAX_INTERPOLATED_STEPS: each track interpolated to the model's steps
+    (`interpolate_to_steps`), if a step is a whole number of frame ids. Slower data, or
+    steps that fall between frame ids, are refused in one line.
+    """
     if fps is None:
         rate = tracks.rate_hz or model_hz
         fps = rate * tracks.frame_step
     rate = fps / tracks.frame_step
     keep_every = rate / model_hz
-    if keep_every < 1 - 1e-6 or abs(keep_every - round(keep_every)) > 1e-6:
-        raise DataError(f"{tracks.path}: annotated at {rate:g} Hz (a row every "
-                        f"{tracks.frame_step} frame ids at {fps:g} per second), which is not a "
-                        f"multiple of the model's {model_hz:g} Hz")
-    step = tracks.frame_step * round(keep_every)
-    on_grid = (tracks.frames - tracks.frames.min()) % step == 0
-    return dataclasses.replace(tracks, frames=tracks.frames[on_grid],
-                               pedestrians=tracks.pedestrians[on_grid],
-                               xy=tracks.xy[on_grid] * scale, frame_step=step,
-                               rate_hz=model_hz)
+    if keep_every >= 1 - 1e-6 and abs(keep_every - round(keep_every)) <= 1e-6:
+        step = tracks.frame_step * round(keep_every)
+        on_grid = (tracks.frames - tracks.frames.min()) % step == 0
+        return dataclasses.replace(tracks, frames=tracks.frames[on_grid],
+                                   pedestrians=tracks.pedestrians[on_grid],
+                                   xy=tracks.xy[on_grid] * scale, frame_step=step,
+                                   rate_hz=model_hz)
+    annotated = (f"{tracks.path}: annotated at {rate:g} Hz (a row every "
+                 f"{_frame_ids(tracks.frame_step)} at {fps:g} per second)")
+    step_s = 1 / model_hz
+    if rate * MAX_INTERPOLATED_STEPS < model_hz * (1 - 1e-6):
+        fix = (f"check --fps, or train a model with --step {1 / rate:g}" if own
+               else f"a model with --step {1 / rate:g} reads it")
+        raise DataError(f"{annotated}, less than 1/{MAX_INTERPOLATED_STEPS:g} of the model's "
+                        f"{model_hz:g} Hz: its rows are more than {MAX_INTERPOLATED_STEPS:g} "
+                        f"steps of {step_s:g} s apart, too far apart to interpolate; {fix}")
+    step_frames = fps * step_s
+    if abs(step_frames - round(step_frames)) > 1e-6:
+        finer = fractions.Fraction(step_frames).limit_denominator(1000).denominator
+        fix = (f"number its frames in finer units (frame ids x{finer}, read with "
+               f"--fps {fps * finer:g})" if own else
+               f"a model whose step is a whole number of them (a multiple of {1 / fps:g} s) "
+               "reads it")
+        raise DataError(f"{annotated}, not a multiple of the model's {model_hz:g} Hz, and "
+                        f"its {step_s:g} s steps would fall between frame ids "
+                        f"({step_frames:.4g} apart); {fix}")
+    return interpolate_to_steps(tracks, round(step_frames), scale, model_hz)
+
+
+def interpolate_to_steps(tracks: Tracks, step: int, scale: float = 1.0,
+                         rate_hz: float | None = None) -> Tracks:
+    """Each track resampled to the model's steps by linear interpolation (a file whose rate
+    is not a multiple of the model's: WILDTRACK's 2 Hz read at 2.5 Hz).
+
+    The steps are the frames `first + k * step` (k = 0, 1, ...; `first` the file's first
+    frame, `step` the model's step in frame ids). At a step, a track's position is:
+    - its row at that frame, if it has one;
+    - else the linear interpolation of its rows just before and just after the step, if those
+      are at most MAX_INTERPOLATED_STEPS steps apart; farther apart (a gap in the file), the
+      track is not detected at the steps between (the rule of `Stream.step(..., time=)`);
+    - nothing before its first row or after its last: a track is never extrapolated.
+
+    Returns tracks on that grid (frame_step `step`), positions times `scale`.
+    """
+    order = np.lexsort((tracks.frames, tracks.pedestrians))
+    frames, pedestrians, xy = tracks.frames[order], tracks.pedestrians[order], tracks.xy[order]
+    first = int(frames.min())
+    # A row at a step is kept as it is.
+    at_step = (frames - first) % step == 0
+    # Each pair of consecutive rows of one track, close enough, gives the steps strictly
+    # between them: floor((later - 1 - first) / step) - floor((earlier - first) / step).
+    gap = np.diff(frames)
+    pairs = np.flatnonzero((pedestrians[1:] == pedestrians[:-1])
+                           & (gap <= MAX_INTERPOLATED_STEPS * step))
+    earlier, later = frames[pairs], frames[pairs + 1]
+    counts = (later - 1 - first) // step - (earlier - first) // step
+    pair = np.repeat(np.arange(len(pairs)), counts)
+    index = np.arange(len(pair)) - np.repeat(np.cumsum(counts) - counts, counts)
+    between = first + ((earlier[pair] - first) // step + 1 + index) * step
+    weight = ((between - earlier[pair]) / (later[pair] - earlier[pair]))[:, None]
+    start, end = xy[pairs[pair]], xy[pairs[pair] + 1]
+    new_frames = np.concatenate([frames[at_step], between])
+    new_pedestrians = np.concatenate([pedestrians[at_step], pedestrians[pairs[pair]]])
+    new_xy = np.concatenate([xy[at_step], start + weight * (end - start)])
+    by_frame = np.lexsort((new_pedestrians, new_frames))
+    return dataclasses.replace(tracks, frames=new_frames[by_frame],
+                               pedestrians=new_pedestrians[by_frame],
+                               xy=new_xy[by_frame] * scale, frame_step=step, rate_hz=rate_hz)
+
+
+def _frame_ids(count: int) -> str:
+    return "frame id" if count == 1 else f"{count} frame ids"
 
 
 def _frame_grid(frames: np.ndarray, pedestrians: np.ndarray) -> tuple[int, int]:
