@@ -13,6 +13,21 @@
 The layers, bottom up: `data` (numpy), `graph` and `gumbel`, `model`, `rollout`, then
 `predict`, `losses`, `metrics`, `interop`, `simulate`; `training`, `evaluation` and `runs`
 (work directories) above them; the commands (`python -m gst_jax.train`, ...) on top.
+
+Files in and out:
+- trajectories: `data.readers` reads text (`frame ped x y`, a tracker's CSV) and TrajNet++
+  ndjson into `data.Tracks`, and puts them on the model's steps (`data.readers.to_model_rate`);
+  `data.windows` cuts them into scene windows and `data.protocols` splits those;
+- predictions: `prediction_files` writes them as TrajNet++ ndjson and reads them back;
+- models: `model.weights` (`model.safetensors` and `config.json`, the shipped models'
+  format), `interop` (the authors' PyTorch weights), `io.workdir` and `io.checkpoints` (a
+  training run's folder and its checkpoints).
+
+The model's layers (`model`): `model.selector` (the edge Gumbel selector), `model.encoder`
+(the node Transformer encoder), `model.recurrent` (the masked LSTM), `model.temporal` (the
+release's TCN readout) and `model.heads` (the output heads), on `model.layers` (initialisers
+and small shared layers), put together in `model.gst`; `model.controls` holds the traced
+switches of a forward pass.
 """
 
 import importlib
@@ -29,8 +44,9 @@ _PUBLIC = {
 }
 # The public names, and the modules of the API reference (`pdoc gst_jax`).
 __all__ = sorted(_PUBLIC) + ["config", "conformal", "coverage", "crowdnav", "data", "errors",
-                             "evaluation", "interop", "metrics", "model", "predict", "pretrained",
-                             "runs", "simulate", "stream", "training"]
+                             "evaluation", "graph", "gumbel", "interop", "io", "losses",
+                             "metrics", "model", "predict", "prediction_files", "pretrained",
+                             "rollout", "runs", "simulate", "stream", "training"]
 
 
 def _bind_for_pdoc() -> None:

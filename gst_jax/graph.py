@@ -14,6 +14,9 @@ import numpy as np
 
 from gst_jax.data.batch import SceneBatch
 
+__all__ = ["adjacency", "displacements", "drop_partially_detected", "edge_features",
+           "float_mask_attention_weights", "masked_categorical", "masked_softmax_weights"]
+
 # The release adds this to every normaliser so that fully masked rows give 0, not NaN.
 EPS = 1e-10
 # The smallest mask entry `masked_softmax_weights` takes the logarithm of.

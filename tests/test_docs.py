@@ -194,10 +194,19 @@ def test_the_quick_start_prints_the_table_the_readme_shows(ran):
     assert drawn["tab:red"] + drawn["tab:orange"] > 500, drawn
 
 
-def test_the_api_reference_builds_from_the_docstrings_without_a_warning(tmp_path):
-    built = subprocess.run([sys.executable, "-m", "pdoc", "-o", str(tmp_path), "gst_jax"],
+@pytest.fixture(scope="module")
+def api_reference(tmp_path_factory) -> tuple[Path, str]:
+    """The API reference as the README builds it (folder, pdoc's stderr): once, it imports
+    every public module."""
+    folder = tmp_path_factory.mktemp("api")
+    built = subprocess.run([sys.executable, "-m", "pdoc", "-o", str(folder), "gst_jax"],
                            check=True, capture_output=True, text=True)
-    assert "Warn" not in built.stderr, built.stderr
+    return folder, built.stderr
+
+
+def test_the_api_reference_builds_from_the_docstrings_without_a_warning(api_reference):
+    tmp_path, stderr = api_reference
+    assert "Warn" not in stderr, stderr
     pages = {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.html")}
     assert {"gst_jax.html", "gst_jax/crowdnav.html", "gst_jax/predict.html",
             "gst_jax/config.html", "gst_jax/runs.html", "gst_jax/stream.html",
@@ -207,6 +216,59 @@ def test_the_api_reference_builds_from_the_docstrings_without_a_warning(tmp_path
     assert 'id="make_predict"' in (tmp_path / "gst_jax.html").read_text()
     assert 'id="make_predict"' in (tmp_path / "gst_jax" / "predict.html").read_text()
     assert 'id="Predictor"' in (tmp_path / "gst_jax" / "crowdnav.html").read_text()
+
+
+# What the front pages name: the file formats, their readers and writers, the model's layers.
+NAMED_ON_THE_FRONT_PAGE = {
+    "gst_jax.data.readers", "gst_jax.data.windows", "gst_jax.data.protocols",
+    "gst_jax.prediction_files", "gst_jax.model.weights", "gst_jax.interop", "gst_jax.io.workdir",
+    "gst_jax.io.checkpoints", "gst_jax.model.selector", "gst_jax.model.encoder",
+    "gst_jax.model.recurrent", "gst_jax.model.temporal", "gst_jax.model.heads",
+    "gst_jax.model.layers", "gst_jax.model.gst"}
+
+
+def _named_modules(text: str, prefix: str = "") -> set[str]:
+    """The modules of gst_jax that `text` names (`prefix` + a dotted name, each resolved to its
+    longest prefix that is a module; commands run with `python -m` left out)."""
+    import importlib.util
+
+    text = re.sub(r"python3?\s+-m\s+gst_jax[\w.]*", "", text)
+    pattern = r"\b(gst_jax(?:\.\w+)+)" if not prefix else r"`([a-z_]\w*(?:\.\w+)*)`"
+    named = set()
+    for name in re.findall(pattern, text):
+        parts = (prefix + name).split(".")
+        for end in range(len(parts), 0, -1):
+            try:
+                found = importlib.util.find_spec(".".join(parts[:end])) is not None
+            except ModuleNotFoundError:          # a name inside a module: its parent is no package
+                found = False
+            if found:
+                named.add(".".join(parts[:end]))
+                break
+    return named
+
+
+def test_the_api_reference_covers_every_module_the_front_pages_name(api_reference):
+    """The README and the package's docstring (the reference's first page) name modules; each
+    has a page, and its page shows its public functions and classes, not the module's
+    internal constants."""
+    import gst_jax
+
+    folder, _ = api_reference
+    pages = {p.relative_to(folder).with_suffix("").as_posix().replace("/", ".")
+             for p in folder.rglob("*.html")}
+    named = (_named_modules((ROOT / "README.md").read_text())
+             | _named_modules(gst_jax.__doc__ or "", prefix="gst_jax."))
+    assert NAMED_ON_THE_FRONT_PAGE <= named, NAMED_ON_THE_FRONT_PAGE - named
+    assert not named - pages, f"named on a front page, not in the reference: {named - pages}"
+    readers = (folder / "gst_jax" / "data" / "readers.html").read_text()
+    assert 'id="to_model_rate"' in readers and 'id="LARGEST_ID"' not in readers
+    weights = (folder / "gst_jax" / "model" / "weights.html").read_text()
+    assert 'id="save"' in weights and 'id="SHIPPED_RECORD"' not in weights
+    graph = (folder / "gst_jax" / "graph.html").read_text()
+    assert 'id="adjacency"' in graph and 'id="EPS"' not in graph
+    writer = (folder / "gst_jax" / "prediction_files.html").read_text()
+    assert 'id="write_predictions"' in writer and 'id="read_predictions"' in writer
 
 
 # The commands (`python -m gst_jax.<command> [<subcommand>]`) and the module of each `main`.

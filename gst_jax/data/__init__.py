@@ -31,4 +31,6 @@ __all__ = [
     "data_name", "default_data_dir", "evaluation_batches", "has_validation", "load_split",
     "make_batch", "no_windows_message", "node_mask_from_positions", "pack_step", "pad_windows",
     "read_tracks", "split_frames", "training_batches",
+    # The modules, pages of their own in the API reference.
+    "readers", "windows", "protocols",
 ]

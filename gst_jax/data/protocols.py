@@ -35,6 +35,10 @@ from gst_jax.data.readers import Tracks, read_tracks, to_model_rate
 from gst_jax.data.windows import Window, WindowSet, cut_windows, kept
 from gst_jax.errors import DataError
 
+__all__ = ["bundled_or_local", "data_files", "data_name", "default_data_dir", "has_validation",
+           "load_split", "no_windows_message", "scene_files", "split_files", "split_frames",
+           "why_no_window"]
+
 SPLITS = ("train", "val", "test", "all")
 TRACK_SUFFIXES = (".txt", ".csv", ".ndjson")
 # Characters a run's name cannot hold: ':' splits DIR:MEMBER model names; the rest break

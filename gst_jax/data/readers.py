@@ -19,6 +19,9 @@ import numpy as np
 
 from gst_jax.errors import DataError
 
+__all__ = ["Tracks", "interpolate_to_steps", "parse_columns", "read_text_tracks", "read_tracks",
+           "read_trajnet_ndjson", "to_model_rate"]
+
 # Frame and pedestrian ids are parsed as floats: beyond 2^53 they are no longer exact.
 LARGEST_ID = 2 ** 53
 # Metres per unit of a file's coordinates (--units).
@@ -311,10 +314,10 @@ def to_model_rate(tracks: Tracks, fps: float | None, model_hz: float, scale: flo
     own: a `--data` file (the refusals name its flags), not a bundled scene.
 
     Annotated at k times `model_hz` (k a whole number): every k-th annotation is kept, from
-    the file's first frame, the rows themselves. At any other rate down to
-    model_hz / MAX_INTERPOLATED_STEPS: each track interpolated to the model's steps
-    (`interpolate_to_steps`), if a step is a whole number of frame ids. Slower data, or
-    steps that fall between frame ids, are refused in one line.
+    the file's first frame, the rows themselves. At any other rate down to half `model_hz`
+    (rows at most 2 steps apart, MAX_INTERPOLATED_STEPS): each track interpolated to the
+    model's steps (`interpolate_to_steps`), if a step is a whole number of frame ids. Slower
+    data, or steps that fall between frame ids, are refused in one line.
     """
     if fps is None:
         rate = tracks.rate_hz or model_hz
@@ -359,7 +362,7 @@ def interpolate_to_steps(tracks: Tracks, step: int, scale: float = 1.0,
     frame, `step` the model's step in frame ids). At a step, a track's position is:
     - its row at that frame, if it has one;
     - else the linear interpolation of its rows just before and just after the step, if those
-      are at most MAX_INTERPOLATED_STEPS steps apart; farther apart (a gap in the file), the
+      are at most 2 steps apart (MAX_INTERPOLATED_STEPS); farther apart (a gap in the file), the
       track is not detected at the steps between (the rule of `Stream.step(..., time=)`);
     - nothing before its first row or after its last: a track is never extrapolated.
 

@@ -5,3 +5,6 @@ keeps them whole.
     checkpoints.py  orbax checkpoints with checksums, restored with a fall-back
     workdir.py      a work directory's layout, and how a run is named and identified
 """
+
+# The API reference's pages: the files (interrupts.py is how they are kept whole).
+__all__ = ["workdir", "checkpoints"]

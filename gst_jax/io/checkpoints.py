@@ -21,6 +21,8 @@ import numpy as np
 from gst_jax.errors import RunError
 from gst_jax.io.interrupts import writes_completed
 
+__all__ = ["Checkpointer", "Restored", "write_atomically"]
+
 
 def _orbax():
     """orbax.checkpoint, imported when a checkpoint is first written or read: importing it

@@ -41,6 +41,9 @@ from gst_jax.errors import RunError
 from gst_jax.io.checkpoints import Checkpointer, write_atomically
 from gst_jax.model.heads import head
 
+__all__ = ["WorkDir", "code_version", "run_config", "run_name", "same_run", "sweep_name",
+           "write_text"]
+
 # Where commands put work directories unless told (--workdir), relative to the current folder.
 RUNS = Path("runs")
 # The fields of an epoch's record that measure the machine, not the training: kept out of

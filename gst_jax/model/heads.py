@@ -17,6 +17,9 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
+__all__ = ["HEADS", "Head", "Losses", "gaussian_nll", "head", "position_mse", "safe_ratio",
+           "sample_displacement"]
+
 # The readout's width: mu (2), log sigma (2), the correlation's pre-tanh (1).
 READOUT_SIZE = 5
 

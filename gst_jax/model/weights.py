@@ -61,6 +61,9 @@ from gst_jax.errors import RunError
 from gst_jax.model.gst import init_params
 from gst_jax.model.heads import HEADS
 
+__all__ = ["Weights", "config_digest", "expected_layout", "flatten", "folder_of", "is_weights",
+           "load", "read_config", "save", "shipped", "shipped_folder"]
+
 FORMAT = "gst_jax.weights/1"
 WEIGHTS_FILE = "model.safetensors"
 CONFIG_FILE = "config.json"
