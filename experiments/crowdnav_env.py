@@ -7,6 +7,8 @@ open loop, on held-out episodes of each condition (issue 90, part 2):
         --pred-len 5 --edge-heads 0 --no-ghost --node-dim 64 --encoder-layers 1 --lstm-dim 64 \\
         --temporal faster_lstm --output gaussian --schedule compressed --epochs 40 \\
         --seed 1000 --workdir runs/crowdnav_env
+    python -m gst_jax.train ...the same flags... --score-partial --hide-history 0.3 \
+        --workdir runs/env_partial_a                      # pretrained:crowdnav_env_partial
     python experiments/crowdnav_env.py --model runs/crowdnav_env --publish
 
 The held-out episodes (seeds 100-129, one per condition of the training mix; the training's
@@ -35,9 +37,11 @@ from gst_jax.predict import make_predict
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.environment import EnvParams
 
-# The models compared: the one trained here on the task's humans, CrowdNav++'s (which the
-# navigation study plans with) and the one trained on the former numpy stand-in crowds.
-MODELS = ("pretrained:crowdnav_sj_rand", "pretrained:crowdnav_sim")
+# The models compared: the one trained here on the task's humans (and again, scoring the
+# partially detected too), CrowdNav++'s (which the navigation study plans with) and the one
+# trained on the former numpy stand-in crowds.
+MODELS = ("pretrained:crowdnav_env_partial", "pretrained:crowdnav_sj_rand",
+          "pretrained:crowdnav_sim")
 # The first step a shift moves (the humans' velocities from the state at 6 s on).
 SHIFTED_FROM = round(EnvParams.shift_at_s / EnvParams.step_s) + 1
 # Condition groups: (name, which files, whether only windows predicted after the shift).

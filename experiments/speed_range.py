@@ -228,7 +228,8 @@ def markdown(rows: dict, command: str, seconds: float, machine: str) -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", nargs="+", default=None, metavar="NAME",
-                        help="shipped models to measure (default: all)")
+                        help="shipped models to measure (default: all); the output "
+                        "folder's rows of the others are kept")
     add_results_flags(parser, "speed_range", "speed_range.md and .json", runs=False)
     args = parser.parse_args(argv)
     names = args.models or pretrained.available()
@@ -237,20 +238,26 @@ def main(argv: list[str] | None = None) -> None:
     load = os.getloadavg()[0]
     start = time.perf_counter()
     rows = {}
+    if args.models and (out / "speed_range.json").exists():
+        rows = json.loads((out / "speed_range.json").read_text())["models"]
     grids = {}
     for name in names:
         progress.line(f"measuring {name}")
         rows[name] = measure_model(name)
         grids[(rows[name]["step_s"], rows[name]["obs_len"], rows[name]["pred_len"])] = True
     for step_s, obs_len, pred_len in grids:
+        baseline = f"constant velocity ({step_s:g} s, {obs_len} + {pred_len})"
+        if baseline in rows:                 # kept from the output folder's record
+            continue
         grid = TimeGrid(step_s=step_s, obs_len=obs_len, pred_len=pred_len)
-        rows[f"constant velocity ({step_s:g} s, {obs_len} + {pred_len})"] = {
+        rows[baseline] = {
             "step_s": step_s, "obs_len": obs_len, "pred_len": pred_len,
             **measure(ConstantVelocity(obs_len, pred_len), None, grid)}
     seconds = time.perf_counter() - start
     machine = (f"{platform.machine()} with {os.cpu_count()} cores"
                f" ({jax.devices()[0].platform}; load average {load:.1f} as it started)")
-    command = "python experiments/speed_range.py" + (" --publish" if args.publish else "")
+    command = "python experiments/speed_range.py" + (" --publish" if args.publish else "") + (
+        f" (then --models {' '.join(args.models)}, the other rows kept)" if args.models else "")
     out.mkdir(parents=True, exist_ok=True)
     record = {"rule": {"max_fde_share": MAX_FDE_SHARE,
                        "max_heading_error_deg": MAX_HEADING_ERROR_DEG,
