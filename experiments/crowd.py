@@ -106,6 +106,8 @@ def markdown(table: list[dict], record: dict | None, output: str, epochs: int,
     elif record.get("train_time_s"):
         lines += [f"Train time {record['train_time_s'] / 60:.0f} min (summed epoch times), "
                   f"code {', '.join(record.get('code') or ['?'])}.", ""]
+    if record is not None and record.get("note"):        # what the record's history adds
+        lines += [record["note"], ""]
     lines += ["| test split | pedestrians | general model AOE / FOE | own model AOE / FOE | "
               "CV AOE / FOE |", "|---|---|---|---|---|"]
     for row in table:

@@ -219,6 +219,14 @@ def test_the_general_model_is_shown_beside_each_scene_s_own_model_and_outlives_i
     crowd.main(argv)
     assert (tmp_path / "out" / "crowd.md").read_text() == table
 
+    # A record evaluated again after the fact says so in a note under the table's caption.
+    record_path = tmp_path / "out" / "runs" / f"{workdir.name}.json"
+    record = json.loads(record_path.read_text())
+    record_path.write_text(json.dumps({**record, "note": "Evaluated again after a fix."}))
+    crowd.main(argv)
+    assert "min (summed epoch times), code ?.\n\nEvaluated again after a fix.\n\n| test split" in (
+        tmp_path / "out" / "crowd.md").read_text()
+
 
 def test_a_shorter_schedule_is_accepted_only_where_every_scene_holds_with_three_seeds(tmp_path):
     out = tmp_path / "out"
