@@ -21,13 +21,14 @@ program loaded from the persistent cache counts as one).
   compilations in the loop (one per capacity reached) and its slowest step.
 - no-rule: the tracker loop with `max_speed=None` (an id is one person whatever it does), for
   the coverage and radii a recycled id costs without the rule.
-- surge: a crowd that comes and goes (issue 92), on an empty cache, frames paced at the model's
-  period as a robot's loop is: `warm_up(40)` (up to 48 slots), then 40 walkers for 60 frames,
-  120 for 120 frames (128 slots: compiled in the background, constant velocity meanwhile, and
-  where a step overruns the period), 40 again for 150 frames. Reported: the median step
-  before, during and after, the longest frame in model periods (target: at most 2), the
-  frames after the surge until the median of 10 steps is back within 1.5x of before (target:
-  within 100), the frames of constant velocity by reason and the capacities in turn.
+- surge: a crowd that comes and goes (issue 92), on an empty cache, frames paced at the
+  model's period (its step_s) as a robot's loop is: `warm_up(40)` (up to 48 slots), then 40
+  walkers for 60 frames, 120 for 120 frames (128 slots: compiled in the background, constant
+  velocity meanwhile, and where a step overruns the period), 40 again for 150 frames.
+  Reported: the median step before, during and after, the longest frame in model periods
+  (target: at most 2), the frames after the surge until the median of 10 steps is back within
+  1.5x of before (target: within 100), the frames of constant velocity by reason and the
+  capacities in turn.
 
 The tracker loop: 400 frames; people enter at the edges of a 16 m square at random times
 (about 50 at once at the peak), walk straight at 0.5-1.5 m/s and leave after 10-60 s. The
@@ -140,25 +141,27 @@ def grow(player, count_compiles) -> dict:
             "worst_step_s": worst, "capacity": player.state.capacity}
 
 
-def surge_frames() -> list[tuple[np.ndarray, np.ndarray]]:
-    """40 straight walkers, then 80 more, then the 40 alone (`SURGE` frames each)."""
+def surge_frames(step_s: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """40 straight walkers, then 80 more, then the 40 alone (`SURGE` frames each, `step_s`
+    apart)."""
     rng = np.random.default_rng(2)
     start, velocity = rng.uniform(-8, 8, (120, 2)), rng.uniform(-1, 1, (120, 2))
     counts = [40] * SURGE[0] + [120] * SURGE[1] + [40] * SURGE[2]
-    return [(np.arange(n), (start + velocity * t * STEP_S)[:n]) for t, n in enumerate(counts)]
+    return [(np.arange(n), (start + velocity * t * step_s)[:n]) for t, n in enumerate(counts)]
 
 
 def surge(player) -> dict:
     """The surge's frames at the model's period (a frame that overran starts the next at once):
     each `Stream.step`'s seconds, its fallback and the capacity after it."""
     seconds, fallbacks, capacities = [], {}, []
+    period = player.grid.step_s
     due = time.perf_counter()
-    for t, (ids, xy) in enumerate(surge_frames()):
+    for t, (ids, xy) in enumerate(surge_frames(period)):
         time.sleep(max(0.0, due - time.perf_counter()))
         started = time.perf_counter()
         out = player.step(ids, xy)
         seconds.append(time.perf_counter() - started)
-        due = started + STEP_S
+        due = started + period
         if out.fallback:
             fallbacks[out.fallback] = fallbacks.get(out.fallback, 0) + 1
         if not capacities or capacities[-1][1] != player.state.capacity:
@@ -170,9 +173,9 @@ def surge(player) -> dict:
                  if np.median(ms[end + k:end + k + 10]) <= 1.5 * before), None)
     return {"before_median_ms": before, "surge_median_ms": float(np.median(ms[SURGE[0]:end])),
             "after_median_ms": float(np.median(ms[end + 100:])), "max_ms": float(ms.max()),
-            "max_frame": int(ms.argmax()), "max_periods": float(ms.max() / 1e3 / STEP_S),
+            "max_frame": int(ms.argmax()), "max_periods": float(ms.max() / 1e3 / period),
             "frames_back_within_1_5x": back, "longest_within_2_periods": bool(
-                ms.max() <= 2e3 * STEP_S), "back_within_100_frames": back is not None
+                ms.max() <= 2e3 * period), "back_within_100_frames": back is not None
             and back <= 100, "fallback_frames": fallbacks, "capacities": capacities,
             "compiled_s": {str(c): round(s, 2) for c, s in player._compiled.items()},
             "overruns": player.overruns}

@@ -98,7 +98,7 @@ from gst_jax.stream_time import Clock
 __all__ = [
     # the host: numpy in and out, ids, capacity growth, times, compiling ahead
     "Stream", "StreamOutput", "MAX_SPEED", "MAX_ACCELERATION", "JUMP_TOLERANCE", "NON_FINITE",
-    "SHRINK_AFTER", "FALLBACKS",
+    "SHRINK_AFTER", "DEADLINE_S", "FALLBACKS",
     # re-exported: the pure core (gst_jax.stream_core) and the regions (gst_jax.conformal)
     "FREE", "Frame", "Gate", "StreamModel", "StreamState", "adapt", "as_batch", "init_state",
     "make_step", "observe", "predict_slots", "update_regions", "Regions",
@@ -125,6 +125,9 @@ NON_FINITE = ("raise", "undetected")
 # program costs a step (issue 92's report: crowd_d at 128 slots, 1.9 s a step with 40 people
 # where 48 slots took 76 ms).
 SHRINK_AFTER = 20
+# `Stream`'s deadline_s where none is given: "step", the model's period (a robot's loop). The
+# test suite sets None (tests/conftest.py): no test's frame may depend on the machine's load.
+DEADLINE_S: float | str | None = "step"
 # Why constant velocity, not the model, predicted a frame (`StreamOutput.fallback`): the
 # program of the capacity the crowd needs compiles in the background; the model's step took
 # longer than the deadline (or an earlier one that did still runs); the model's step failed.
@@ -213,13 +216,14 @@ class Stream:
     compilation_cache: a folder where JAX keeps every compiled program of this process
     (`gst_jax.compiles.use_persistent_cache`): a restarted robot loads its programs from it
     instead of compiling them again. None: the process's own setting.
-    deadline_s: how long a frame waits for the model (default "step": the model's period,
-    `step_s`). A crowd that needs a capacity this stream has not compiled gets its program
-    compiled in the background (`warm_up` compiles ahead), and a model's step not done in
-    time runs on unused: meanwhile constant velocity predicts, on the host, the tracks kept
-    whole for the model to take over (`StreamOutput.fallback`, as where the model's step
-    fails). None: every frame waits for the model, compiling included (a recording replayed
-    or measured). Each model step runs in a thread of the stream's with a deadline.
+    deadline_s: how long a frame waits for the model ("step": the model's period, `step_s`;
+    by default DEADLINE_S, "step"). A crowd that needs a capacity this stream has not compiled
+    gets its program compiled in the background (`warm_up` compiles ahead), and a model's step
+    not done in time runs on unused: meanwhile constant velocity predicts, on the host, the
+    tracks kept whole for the model to take over (`StreamOutput.fallback`, as where the
+    model's step fails). None: every frame waits for the model, compiling included (a
+    recording replayed or measured). Each model step runs in a thread of the stream's with a
+    deadline.
     shrink_after: frames in a row whose tracks fit a smaller bucket before the capacity
     shrinks to it, the tracks compacted (default SHRINK_AFTER, 20); None: never.
     Compiles (with their seconds), capacity changes, overruns and constant velocity's frames
@@ -236,7 +240,10 @@ class Stream:
                  adaptation: Adaptation | None = None,
                  max_acceleration: float | None = MAX_ACCELERATION,
                  jump_tolerance: float = JUMP_TOLERANCE, step_s: float | None = None,
-                 deadline_s: float | str | None = "step", shrink_after: int | None = SHRINK_AFTER):
+                 deadline_s: float | str | None = "default",
+                 shrink_after: int | None = SHRINK_AFTER):
+        if deadline_s == "default":
+            deadline_s = DEADLINE_S
         if non_finite not in NON_FINITE:
             raise DataError(f"Stream: non_finite must be one of {NON_FINITE}, got "
                             f"{non_finite!r}")
@@ -479,8 +486,9 @@ class Stream:
         """(None, the model's step) or (why not, None): "compiling" (this capacity's program
         compiles in the background), "overrun" (this step, or an earlier one still running,
         took longer than `deadline_s`), "error" (it raised; logged)."""
-        if self.state.capacity not in self._compiled and not self._compiles_inline():
-            return "compiling", None
+        capacity = self.state.capacity
+        if capacity not in self._compiled and not self._compiles_inline():
+            return ("error" if capacity in self._failed else "compiling"), None
         if self._running is not None:
             if not self._running.done():
                 return "overrun", None
@@ -490,7 +498,8 @@ class Stream:
         except DataError:
             raise                            # a refusal (memory), with its fix: the user's
         except Exception as error:           # any other failure: the robot goes on, on CV
-            self._error = f"{type(error).__name__}: {str(error).splitlines()[0][:300]}"
+            self._error = (f"the model's step failed: {type(error).__name__}: "
+                           f"{str(error).splitlines()[0][:300]}")
             logger.debug("the model's step at frame %d failed", self.frames, exc_info=True)
             return "error", None
         return ("overrun", None) if outcome is None else (None, outcome)
@@ -566,11 +575,13 @@ class Stream:
         to the smallest capacity compiled that holds them, else to their bucket (its program
         compiled in the background, constant velocity meanwhile, where there is a deadline);
         shrunk, the tracks compacted, once they have fitted a smaller bucket for
-        `shrink_after` frames in a row and its program is compiled."""
+        `shrink_after` frames in a row and its program is compiled. A capacity holds the tracks
+        both before this frame's step and after it (the tracks that end, end inside it)."""
         self._collect_compile()
         held = self._held_after(ids, lost, idle)
+        needed = max(held, int((np.asarray(self.state.track_ids) != FREE).sum()))
         capacity = self.state.capacity
-        holding = sorted(c for c in self._compiled if c >= held)
+        holding = sorted(c for c in self._compiled if c >= needed)
         if held > capacity:
             target = holding[0] if holding else bucket_size(held)
             resized = self._resized(target)
@@ -578,36 +589,36 @@ class Stream:
             self._resize(resized, held)
         elif capacity not in self._compiled:         # constant velocity until it compiles
             if holding:
-                self._resize(self._resized(holding[0]), held)
+                self._resize(self._resized(holding[0]), held, "; compiled")
             else:
                 self._compile_behind(self.state, held)
         else:
-            self._shrink(held)
+            self._shrink(held, needed)
 
-    def _shrink(self, held: int) -> None:
-        """Count the frames in a row whose tracks fit a smaller bucket (and the most tracks
-        held over them); after `shrink_after` of them, move to the bucket of that most,
-        compacted, once its program is compiled (in the background meanwhile)."""
+    def _shrink(self, held: int, needed: int) -> None:
+        """Count the frames in a row whose tracks, before and after the step (`needed`), fit a
+        smaller bucket, and the most over them; after `shrink_after` of them, move to the
+        bucket of that most, compacted, once its program is compiled (in the background
+        meanwhile)."""
         capacity = self.state.capacity
-        if bucket_size(held) >= capacity or capacity <= self._floor:
+        if bucket_size(needed) >= capacity or capacity <= self._floor:
             self._small_frames, self._small_peak = 0, 0
             return
         self._small_frames += 1
-        self._small_peak = max(self._small_peak, held)
+        self._small_peak = max(self._small_peak, needed)
         if self.shrink_after is None or self._small_frames < self.shrink_after:
             return
         smaller = self._resized(max(bucket_size(self._small_peak), self._floor))
         if smaller.capacity in self._compiled or self._compiles_inline():
-            self._resize(smaller, held)
+            self._resize(smaller, held, f"; at most {self._small_peak} for "
+                                        f"{self._small_frames} frames")
         else:
             self._compile_behind(smaller, held)
 
-    def _resize(self, resized: StreamState, held: int) -> None:
-        """Take the state `_resized` gave, and say so."""
+    def _resize(self, resized: StreamState, held: int, why: str = "") -> None:
+        """Take the state `_resized` gave, and say so (with `why`)."""
         logger.info("frame %d: capacity %d -> %d slots (%d tracks%s)", self.frames,
-                    self.state.capacity, resized.capacity, held,
-                    f"; at most {self._small_peak} for {self._small_frames} frames"
-                    if resized.capacity < self.state.capacity else "")
+                    self.state.capacity, resized.capacity, held, why)
         self.state = resized
         self._small_frames, self._small_peak = 0, 0
 
@@ -659,9 +670,10 @@ class Stream:
             raise
         except Exception as error:           # constant velocity while it is needed
             self._failed.add(capacity)
-            logger.error("compiling the stream step over %d slots failed (%s: %s): constant "
-                         "velocity predicts while the crowd needs them", capacity,
-                         type(error).__name__, str(error).splitlines()[0][:300])
+            self._error = (f"compiling the step over {capacity} slots failed: "
+                           f"{type(error).__name__}: {str(error).splitlines()[0][:300]}")
+            logger.error("frame %d: %s; constant velocity predicts while the crowd needs them",
+                         self.frames, self._error)
 
     def _finish_compiling(self) -> None:
         """Wait for the background compile, if any, and take it (`_collect_compile`)."""
@@ -704,7 +716,7 @@ class Stream:
                                 "the background",
                    "overrun": f"the model's step is not done after {self.deadline_s} s "
                               "(deadline_s)",
-                   "error": f"the model's step failed ({self._error})"}[reason]
+                   "error": self._error}[reason]
             logger.warning("frame %d: constant velocity predicts: %s", self.frames, why)
             self._fallback_since = self.frames
         self._fallback = reason

@@ -5,8 +5,10 @@ whole for the model to take over; a model step that fails, or overruns its deadl
 back the same way. The host's numpy step keeps the tracks as the core's `observe` does.
 
 Every stream here is crowdnav_sim's with pooled DtACI discs (the programs of 8 and 16 slots,
-those tests/test_stream.py compiles too); where the values are compared, the streams wait for
-the model (`deadline_s=None`), so that no frame falls back for the machine's load."""
+those tests/test_stream.py compiles too). Where the values are compared, the streams wait for
+the model (`deadline_s=None`, the suite's default: tests/conftest.py), so that no frame falls
+back for the machine's load; where a deadline is the point, it is 1-30 s, reached only by the
+tests' stand-ins for a compile or a step, which hold until the test lets them go."""
 
 from __future__ import annotations
 
@@ -29,6 +31,15 @@ P = 5                                       # crowdnav_sim's predicted steps, of
 @pytest.fixture(scope="module")
 def sim_run():
     return load_model("pretrained:crowdnav_sim")
+
+
+@pytest.fixture
+def release():
+    """An event the test's stand-ins for compiling or stepping wait on, set at the end
+    whatever happens: a thread left waiting would hold the process at its exit."""
+    event = threading.Event()
+    yield event
+    event.set()
 
 
 def walks(count: int, frames: int, seed: int = 3) -> np.ndarray:
@@ -108,7 +119,7 @@ def test_after_a_surge_the_capacity_shrinks_and_the_remaining_predictions_are_un
         sim_run, caplog):
     """Three walkers behind a crowd of 12 in the frames (so that the three hold slots 12-14
     of 16) for 10 frames, then the three alone: 4 frames (`shrink_after`) after the crowd's
-    tracks end the stream is back at 8 slots, the three compacted into slots 0-2. Its
+    tracks have ended the stream is back at 8 slots, the three compacted into slots 0-2. Its
     predictions then equal those of a stream that never saw the crowd, and its discs and
     delayed scores (by track: the score buffer moved with them) those of a stream that never
     shrinks."""
@@ -140,8 +151,8 @@ def test_after_a_surge_the_capacity_shrinks_and_the_remaining_predictions_are_un
             np.testing.assert_array_equal(mask, expected_mask)
             np.testing.assert_allclose(scores, expected_scores, atol=2e-5, rtol=0)
             compared += int(mask.sum())
-    # Held 3 from frame 14: the 4th such frame (17) shrinks.
-    assert capacities == [16] * 17 + [8] * 23
+    # 3 held after frame 14's step, before and after from 15: the 4th such frame (18) shrinks.
+    assert capacities == [16] * 18 + [8] * 22
     np.testing.assert_array_equal(np.asarray(shrinking.state.track_ids),
                                   [100, 101, 102] + [stream.FREE] * 5)
     assert staying.state.capacity == 16 and compared > 200
@@ -151,10 +162,10 @@ def test_after_a_surge_the_capacity_shrinks_and_the_remaining_predictions_are_un
 
 def test_a_count_hovering_at_a_buckets_edge_does_not_flap(sim_run, caplog):
     """Warmed up for 8 and 16 slots; 12 walkers, then 8, with a ninth (a new one each time)
-    every 8th frame: a track seen at t is held through t + 4 (obs_len 5), so 8 tracks fit 8
-    slots for 3 frames in a row at most and 16 slots stay (shrink_after 4). Once the ninths
-    stop, the 4th frame of 8 shrinks; the next ninth grows it again, from its compiled
-    program (no constant velocity)."""
+    every 8th frame: a track seen at t is held through t + 4 (obs_len 5), until t + 5's step
+    ends it, so 8 tracks fit 8 slots before and after a step for 2 frames in a row at most and
+    16 slots stay (shrink_after 4). Once the ninths stop, the 4th frame of 8 shrinks; the next
+    ninth grows it again, from its compiled program (no constant velocity)."""
     caplog.set_level(logging.INFO, logger="gst_jax.stream")
     player = stream.Stream(sim_run, regions=REGIONS, deadline_s=30.0, shrink_after=4)
     assert player.warm_up(12) == (8, 16)
@@ -169,9 +180,10 @@ def test_a_count_hovering_at_a_buckets_edge_does_not_flap(sim_run, caplog):
         out = player.step(ids, positions)
         assert out.fallback is None
         capacities.append(player.state.capacity)
-    # 12 held to frame 4, 9 at 7-11, 15-19, 23-27 and 31-35: 8 at 5-6, 12-14, 20-22, 28-30,
-    # then 36-40: the 4th of those (39) shrinks; 41's ninth grows it.
-    assert capacities == [16] * 39 + [8, 8] + [16] * 4
+    # 12 held to frame 4 (and before 5's step), 9 at 7-11 (and before 12's), 15-19, 23-27,
+    # 31-35: 8 before and after at 6, 13-14, 21-22, 29-30, then 37-40: the 4th of those (40)
+    # shrinks; 41's ninth grows it.
+    assert capacities == [16] * 40 + [8] + [16] * 4
     assert capacity_log(caplog) == ["capacity 8 -> 16 slots (12 tracks)",
                                     "capacity 16 -> 8 slots (8 tracks; at most 8 for 4 frames)",
                                     "capacity 8 -> 16 slots (9 tracks)"]
@@ -181,7 +193,7 @@ def test_a_count_hovering_at_a_buckets_edge_does_not_flap(sim_run, caplog):
 
 
 def test_a_frame_needing_a_new_capacity_gets_constant_velocity_while_it_compiles(
-        sim_run, monkeypatch, caplog):
+        sim_run, monkeypatch, caplog, release):
     """Past the compiled capacity (8), a crowd of 12 gets constant velocity at once, not its
     program: the stream holds 16 slots and every track, and its predictions are the walks'
     own futures (constant velocity's, worked out here) until the compile, held back by the
@@ -193,7 +205,6 @@ def test_a_frame_needing_a_new_capacity_gets_constant_velocity_while_it_compiles
     waited = stream.Stream(sim_run, regions=REGIONS, deadline_s=None)
     expected = [waited.step(ids, xy[t, ids]) for t, ids in enumerate(frames)]
 
-    release = threading.Event()
     compile_now = stream._compile
 
     def held_back(*args):
@@ -237,7 +248,7 @@ def test_a_capacity_whose_compiling_memory_cannot_hold_is_refused_in_one_line(si
                                                                              monkeypatch):
     """The compile that would run in the background is refused at the frame that needs it,
     as a compile in the loop is (`check_compiler_room`): nothing started, nothing resized."""
-    player = stream.Stream(sim_run, regions=REGIONS)
+    player = stream.Stream(sim_run, regions=REGIONS, deadline_s=30.0)
     xy = walks(12, 2)
     player.step(np.arange(3), xy[0, :3])                  # its first program: 8 slots
     monkeypatch.setattr(resources, "available_memory",
@@ -245,6 +256,37 @@ def test_a_capacity_whose_compiling_memory_cannot_hold_is_refused_in_one_line(si
     with pytest.raises(DataError, match=r"^a stream step over 16 slots: XLA's compiler needs"):
         player.step(np.arange(12), xy[1])
     assert player._compiling is None and player.state.capacity == 8
+
+
+def test_a_capacity_that_fails_to_compile_gets_constant_velocity_while_it_is_needed(
+        sim_run, monkeypatch, caplog):
+    """A background compile that raises: logged; constant velocity ("error") while the crowd
+    needs that capacity (12 tracks, held to 4 frames after their last), the model again at
+    the capacity compiled once they fit it, before the step and after."""
+    caplog.set_level(logging.INFO, logger="gst_jax.stream")
+    player = stream.Stream(sim_run, regions=REGIONS, deadline_s=30.0)
+    xy = walks(12, 14)
+    player.step(np.arange(3), xy[0, :3])                  # its first program: 8 slots
+
+    def failing(*args):
+        raise RuntimeError("LLVM ERROR: out of memory\nmore lines")
+
+    monkeypatch.setattr(stream, "_compile", failing)
+    reasons = []
+    for t in range(1, 14):
+        ids = np.arange(12 if t < 4 else 3)
+        reasons.append(player.step(ids, xy[t, ids]).fallback)
+        if t == 1:
+            player._finish_compiling()
+    # Frame 8's step ends the 9 tracks: the state before it still holds them.
+    assert reasons == ["compiling"] + ["error"] * 7 + [None] * 5
+    assert player.state.capacity == 8 and player._failed == {16}
+    errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
+    assert errors == ["frame 2: compiling the step over 16 slots failed: RuntimeError: LLVM "
+                      "ERROR: out of memory; constant velocity predicts while the crowd needs "
+                      "them"]
+    assert capacity_log(caplog)[-2:] == ["capacity 8 -> 16 slots (12 tracks)",
+                                         "capacity 16 -> 8 slots (3 tracks; compiled)"]
 
 
 def test_a_failing_step_falls_back_and_the_model_takes_over_after(sim_run, monkeypatch,
@@ -272,12 +314,12 @@ def test_a_failing_step_falls_back_and_the_model_takes_over_after(sim_run, monke
         np.testing.assert_allclose(out.futures, want.futures, atol=2e-5, rtol=0)
     warnings = [r.getMessage() for r in caplog.records
                 if r.levelno == logging.WARNING and "constant velocity" in r.getMessage()]
-    assert warnings == ["frame 5: constant velocity predicts: the model's step failed "
-                        "(RuntimeError: INTERNAL: a device fault)"]
+    assert warnings == ["frame 5: constant velocity predicts: the model's step failed: "
+                        "RuntimeError: INTERNAL: a device fault"]
     assert int(player.state.feed.step) == player.frames == 10
 
 
-def test_a_step_past_its_deadline_falls_back_until_it_is_done(sim_run, monkeypatch):
+def test_a_step_past_its_deadline_falls_back_until_it_is_done(sim_run, monkeypatch, release):
     """A model step that does not return (held by the test) past the deadline: that frame and
     the next are constant velocity's ("overrun"), the stream never waiting for it; once it is
     done, the model predicts again (its late outputs unused), as a stream without the stall."""
@@ -286,7 +328,7 @@ def test_a_step_past_its_deadline_falls_back_until_it_is_done(sim_run, monkeypat
     expected = [reference.step(np.arange(5), xy[t]) for t in range(10)]
     # A deadline far beyond a step of 5 people (milliseconds), reached only by the held one.
     player = stream.Stream(sim_run, regions=REGIONS, deadline_s=1.0)
-    release, call = threading.Event(), stream._call
+    call = stream._call
 
     def held_at_frame_4(step, args):
         if int(args[4]) == 4:
