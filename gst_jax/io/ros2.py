@@ -303,8 +303,9 @@ def replay(run, source: str | Path, out: str | Path, *, topic: str = PEOPLE_TOPI
     """Play the People messages of the bag `source` on `topic` through a `Stream` of `run`
     (mean mode, each frame at its header stamp) and write its predictions and discs to the bag
     `out` (the module's docstring says how). The people must be in one fixed frame (a world
-    frame, metres); the frames' stamps a whole number of model steps apart. Returns a summary:
-    frames, people, predictions and discs written, the topics' message counts."""
+    frame, metres), stamped in seconds (resampled to the model's steps as `Stream.step(time=)`
+    does). Returns a summary: frames, people, predictions and discs written, the topics'
+    message counts."""
     source, out = Path(source), Path(out)
     _require_bag_packages()
     if not source.is_file():
@@ -313,7 +314,9 @@ def replay(run, source: str | Path, out: str | Path, *, topic: str = PEOPLE_TOPI
     if out.exists() and out.resolve() == source.resolve():
         raise DataError(f"--out {out} is the input bag: write the predictions to another file")
     total = _checked_bag(source, topic)
-    stream, names = Stream(run, regions=regions), TrackNames()
+    # A replay is offline: every frame waits for the model (no constant-velocity fallback on
+    # a step slower than the model's period), so that the bag holds the model's predictions.
+    stream, names = Stream(run, regions=regions, deadline_s=None), TrackNames()
     frames = predictions = discs_written = 0
     frame_id: str | None = None
     partial = out.with_name(out.name + ".partial")      # a bag whole or none: replaced at the end
