@@ -97,7 +97,7 @@ def table(rows: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", default="pretrained:crowdnav_env",
+    parser.add_argument("--model", default="pretrained:crowdnav_env_partial",
                         help="the model trained on the task's humans (default: %(default)s)")
     parser.add_argument("--test-data", type=Path, default=Path("runs/crowds/test"),
                         help="the held-out episodes (default: %(default)s)")
