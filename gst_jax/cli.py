@@ -238,11 +238,13 @@ def add_data_flags(parser: argparse.ArgumentParser, *, of_run: bool = False,
     add_own_data_flags(group)
 
 
-def add_own_data_flags(group) -> None:
-    """--drop-off-grid, --data, --fps, --units, --columns: reading files, and your own files."""
+def add_own_data_flags(group, data_group=None) -> None:
+    """--drop-off-grid, --data, --fps, --units, --columns: reading files, and your own files.
+    data_group: where --data goes, if not in `group` (a mutually exclusive one)."""
     add_field_flag(group, "--drop-off-grid", DataConfig, "drop_off_grid", default=False,
                    action="store_true")
-    add_field_flag(group, "--data", DataConfig, "data", default=None, metavar="PATH")
+    add_field_flag(data_group or group, "--data", DataConfig, "data", default=None,
+                   metavar="PATH")
     add_field_flag(group, "--fps", DataConfig, "fps", default=None)
     # --units sets DataConfig.scale to one of UNITS' metres per unit (each within its rule).
     group.add_argument("--units", default="m", choices=tuple(UNITS),
@@ -250,6 +252,27 @@ def add_own_data_flags(group) -> None:
     # --columns: a string the readers can parse (column_map), as the field holds it.
     add_field_flag(group, "--columns", DataConfig, "columns", default=None, type=column_map,
                    metavar="F,ID,X,Y")
+
+
+def add_choice_flags(parser: argparse.ArgumentParser) -> None:
+    """`pretrained choose`'s flags: its data (--data and the flags that read it, or --scene;
+    their validation split under protocol paper-val, as a fine-tuning's), --models, --samples,
+    --seed, --json, --compilation-cache."""
+    group = parser.add_argument_group("data (the validation split of protocol paper-val)")
+    which = group.add_mutually_exclusive_group(required=True)
+    add_field_flag(which, "--scene", DataConfig, "scene", default=None, choices=SCENES,
+                   default_says="none: give --data or --scene")
+    add_own_data_flags(group, which)
+    parser.set_defaults(protocol=FINE_TUNING["protocol"], data_dir=None)
+    parser.add_argument("--models", default=None,
+                        type=lambda text: [n.strip() for n in text.split(",") if n.strip()],
+                        metavar="NAME,...", help="shipped models to compare, "
+                        "e.g. hotel_d,crowd_d (default: every shipped model)")
+    parser.add_argument("--samples", type=positive_int, default=20,
+                        help="K: samples of every window, as evaluate's (default: 20)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the samples (default: 0)")
+    parser.add_argument("--json", action="store_true", help="print the result as JSON on stdout")
+    add_compilation_cache_flag(parser)
 
 
 def column_map(text: str) -> str:

@@ -52,7 +52,8 @@ LAYERS = (
     ("models by name", {"gst_jax.runs"}),
     ("drivers", {"gst_jax.training.loop", "gst_jax.training.selection",
                  "gst_jax.training.sweep", "gst_jax.run_figures",
-                 "gst_jax.simulate.paper.study", "gst_jax.pretrained.export"}),
+                 "gst_jax.simulate.paper.study", "gst_jax.pretrained.export",
+                 "gst_jax.pretrained.choose"}),
     ("flags", {"gst_jax.cli"}),
 )
 # Imports against the layers, each with its reason in docs/architecture.md (none today).

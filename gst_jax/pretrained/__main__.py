@@ -1,5 +1,6 @@
-"""Shipped models: `python -m gst_jax.pretrained list`, `... export MODEL --name NAME` (ship it),
-`... export MODEL --out DIR` (DIR/model.safetensors + config.json, read by load_model(DIR))."""
+"""Shipped models: `python -m gst_jax.pretrained list`, `... choose --data FILE` (rank them on
+your data's validation windows beside constant velocity), `... export MODEL --name NAME` (ship
+it), `... export MODEL --out DIR` (DIR/model.safetensors + config.json, read by load_model)."""
 
 from __future__ import annotations
 
@@ -37,6 +38,8 @@ def main(argv: list[str] | None = None) -> None:
     listing = commands.add_parser("list", help="shipped models: their measured test AOE/FOE, "
                                   "time step and speed range")
     listing.add_argument("--json", action="store_true", help="print every model's meta.json")
+    cli.add_choice_flags(commands.add_parser("choose", help="rank the shipped models whose time "
+                         "step fits your data, and constant velocity, on its validation windows"))
     argv = sys.argv[1:] if argv is None else argv
     command_line = shlex.join(["python", "-m", "gst_jax.pretrained", *argv])
     cli.run(lambda args: command(args, command_line), parser, argv)
@@ -52,12 +55,16 @@ def command(args, command_line: str) -> None:
         print("written:", export.export_weights(args.run, args.out, **given) if args.out
               else export.export(args.run, args.name, check or None, **given))
         return
-    if args.json:
+    if args.command == "choose":
+        from gst_jax.pretrained import choose  # evaluation code, only when choosing
+        print(choose.report(cli.data_config(args), args.models, num_samples=args.samples,
+                            seed=args.seed, as_json=args.json))
+    elif args.json:
         print(json.dumps({name: pretrained.load_meta(name) for name in pretrained.available()},
                          indent=2))
-        return
-    for name in pretrained.available():
-        print("\n".join(pretrained.describe(name)))
+    else:
+        for name in pretrained.available():
+            print("\n".join(pretrained.describe(name)))
 
 if __name__ == "__main__":
     main()
