@@ -130,9 +130,12 @@ def _score(predicted: Iterable[PredictedBatch], obs_len: int, names: Iterable[st
 
 def protocol_line(data_config: DataConfig, split: str, num_samples: int,
                   epochs: int | None = None) -> str:
-    trained = f", {epochs} epochs" if epochs is not None else ""
-    return (f"{data_config.scene}, protocol {data_config.protocol}, {split} split, "
-            f"{num_samples} samples (hard, tau {EVAL_TAU}){trained}")
+    """What was evaluated, in one line. epochs: the model's; None for a prediction file,
+    whose samples were drawn however its maker drew them: the line claims no sampling."""
+    where = f"{data_config.scene}, protocol {data_config.protocol}, {split} split"
+    if epochs is None:
+        return f"{where}, {num_samples} samples per pedestrian as the file holds them"
+    return f"{where}, {num_samples} samples (hard, tau {EVAL_TAU}), {epochs} epochs"
 
 
 _HEADER = ("model", "AOE (m)", "FOE (m)", "minADE", "minFDE", "KDE NLL", "collisions",

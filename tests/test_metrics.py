@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from gst_jax import metrics
+from gst_jax.config import DataConfig
 from gst_jax.data import pad_windows
 from gst_jax.data.windows import Window
-from gst_jax.evaluation import score
+from gst_jax.evaluation import protocol_line, score
 from gst_jax.prediction_files import PredictedBatch
 
 P = 4
@@ -168,3 +169,14 @@ def test_a_new_metric_is_one_function_and_one_line(monkeypatch):
     assert result["max_error_std"] == pytest.approx(0.1)
     assert result["aoe"] == pytest.approx(0.2) and result["pedestrians"] == 2
     assert result["cv_aoe"] == pytest.approx(0.0, abs=1e-6)       # walkers at constant velocity
+
+
+def test_a_prediction_files_protocol_line_claims_no_sampling_it_cannot_know():
+    """A model's evaluation drew its samples itself (hard, tau 0.03); a prediction file's were
+    drawn by whoever wrote it, so its line says only how many it holds."""
+    config = DataConfig(scene="zara1")
+    assert protocol_line(config, "test", 20, 200) == (
+        "zara1, protocol paper, test split, 20 samples (hard, tau 0.03), 200 epochs")
+    from_file = protocol_line(config, "test", 5)
+    assert from_file == ("zara1, protocol paper, test split, 5 samples per pedestrian as the "
+                         "file holds them")
