@@ -3,7 +3,8 @@ commands the tests start, so that a program several tests build compiles once; p
 compiled at LLVM's lowest optimisation level, since the suite's time goes to compiling them,
 not to running them; the longest test files first; and the compiled programs let go after a
 test file once a worker holds many memory maps, since every program holds some and Linux's
-limit is 65530 (docs/commands.md), where XLA aborts."""
+limit is 65530 (docs/commands.md), where XLA aborts; and each test file's name as its first
+test starts (file_progress.py), where the quiet run writes only dots."""
 
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ os.environ["XLA_FLAGS"] = " ".join([USER_XLA_FLAGS, *SUITE_XLA_FLAGS]).strip()
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
+from file_progress import FileProgress  # noqa: E402
 
 from gst_jax import compiles, stream  # noqa: E402
 from gst_jax.private_folders import private_folder  # noqa: E402
@@ -60,6 +62,33 @@ def pytest_collection_modifyitems(items):
         name = item.path.name
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
     items.sort(key=rank)                     # stable: each file's tests keep their order
+
+
+# Each test file's name as its first test starts (file_progress.py), where the terminal shows
+# none: in the process that writes to it, under -q or several workers.
+_file_progress: FileProgress | None = None
+
+
+@pytest.hookimpl(trylast=True)              # after the terminal reporter is registered
+def pytest_configure(config):
+    global _file_progress
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    verbosity, workers = config.getoption("verbose"), config.getoption("numprocesses", None)
+    if hasattr(config, "workerinput") or reporter is None or verbosity > 0 or (
+            verbosity == 0 and not workers):             # pytest writes the names itself
+        return
+
+    def write_line(text: str) -> None:
+        if reporter._tw.width_of_current_line:           # after a line of dots
+            reporter._tw.line()
+        reporter._tw.line(text)
+    _file_progress = FileProgress(write_line)
+
+
+def pytest_runtest_logreport(report):
+    if _file_progress is not None:
+        gateway = getattr(getattr(report, "node", None), "gateway", None)   # xdist's worker
+        _file_progress.report(report.nodeid, report.when, getattr(gateway, "id", None))
 
 
 @pytest.fixture(autouse=True, scope="module")
