@@ -120,6 +120,14 @@ def cut_windows(tracks: Tracks, seq_len: int, obs_len: int) -> list[Window | Non
     return windows
 
 
+def window_at(tracks: Tracks, start_frame: int, seq_len: int, obs_len: int) -> Window | None:
+    """The window of `seq_len` steps from `start_frame` (a frame of the tracks' grid), as
+    `cut_windows` cuts them; None when nobody in it is fully detected."""
+    last = start_frame + (seq_len - 1) * tracks.frame_step
+    rows = (tracks.frames >= start_frame) & (tracks.frames <= last)
+    return _window_from_rows(tracks, rows, start_frame, seq_len, obs_len)
+
+
 def _window_from_rows(tracks: Tracks, rows: np.ndarray, start_frame: int,
                       seq_len: int, obs_len: int) -> Window | None:
     if not rows.any():
