@@ -300,6 +300,20 @@ def add_sampling_flags(parser: argparse.ArgumentParser) -> None:
                    also="; predicting with K, an evaluation is printed, not written")
 
 
+def add_windows_flag(parser: argparse.ArgumentParser, *, scoring: bool) -> None:
+    """--windows: for a TrajNet++ file, a prediction file of the split's windows, not a
+    submission for the file's own scenes (`gst_jax.data.trajnet`); scoring: evaluate's."""
+    if scoring:
+        help = ("with --predictions: the file holds the split's windows (`predict --windows`); "
+                "without, a TrajNet++ file's data is scored as a submission for its own scenes, "
+                "by gst_jax's per-pedestrian metrics and by TrajNet++'s evaluator's rules")
+    else:
+        help = ("for a TrajNet++ file: predict the split's windows, one scene row each (ids "
+                "are window indices, every predicted pedestrian, the observed tracks), "
+                "instead of a submission for the file's own scenes")
+    parser.add_argument("--windows", action="store_true", help=help)
+
+
 def add_model_flags(parser: argparse.ArgumentParser, *, several_edge_heads: bool = False) -> None:
     """--edge-heads (one n, or a comma-separated list for sweeps), --no-ghost, --output,
     --temporal, the widths and depth, and the time grid (--step, --obs-len, --pred-len)."""

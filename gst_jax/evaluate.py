@@ -26,6 +26,7 @@ def main(argv: list[str] | None = None) -> None:
                         "(or one of its checkpoints/<epoch>), SWEEP_DIR:MEMBER, or pretrained:NAME")
     parser.add_argument("--predictions", metavar="FILE", help="instead of a model, score this "
                         "TrajNet++ prediction file on --data or --scene")
+    cli.add_windows_flag(parser, scoring=True)
     cli.add_data_flags(parser, of_run=True)
     cli.add_sampling_flags(parser)
     parser.add_argument("--no-kde", action="store_true", help="skip the KDE NLL")
@@ -44,7 +45,7 @@ def evaluate(args) -> None:
     if args.predictions:                          # another model's file, or ours
         data_config, out = cli.data_config(args), None
         result = evaluate_prediction_file(Path(args.predictions), data_config, args.split,
-                                          with_kde=not args.no_kde)
+                                          with_kde=not args.no_kde, windows=args.windows)
     else:
         devices = cli.devices(args)             # first: processes join before jax is used
         run = load_model(args.model, args.epoch).with_candidates(args.candidates)

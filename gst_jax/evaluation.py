@@ -6,25 +6,36 @@ so AOE/FOE are reported as the mean over runs with the spread (std) across runs.
 best-of-K minADE/minFDE, KDE NLL (Trajectron++ rule), the collision rate of predictions and
 of the ground truth, TrajNet++'s Col-I / Col-II, and a constant-velocity baseline on exactly
 the same pedestrians. The same metrics score a TrajNet++ prediction file
-(`evaluate_prediction_file`), ours (`write_run_predictions`) or another model's.
+(`evaluate_prediction_file`), ours (`write_run_predictions`) or another model's. For a
+TrajNet++ file's own scenes (`gst_jax.data.trajnet`), a submission is also scored as
+TrajNet++'s evaluator scores it (`gst_jax.trajnet_metrics`), beside these per-pedestrian
+figures.
 """
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Iterable, Iterator, NamedTuple
 
 import jax
 import numpy as np
 
-from gst_jax import data, graph, metrics
+from gst_jax import data, graph, metrics, trajnet_metrics
 from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TimeGrid
+from gst_jax.data.trajnet import SceneSet, load_scenes
 from gst_jax.errors import DataError
 from gst_jax.model import Controls, Params
 from gst_jax.parallel import Devices
 from gst_jax.predict import DEFAULT_MEMORY_BUDGET, make_predict
-from gst_jax.prediction_files import PredictedBatch, read_predictions, write_predictions
+from gst_jax.prediction_files import (
+    PredictedBatch,
+    predicted_batches,
+    read_prediction_file,
+    read_predictions,
+    write_predictions,
+    write_scene_predictions,
+)
 from gst_jax.progress import Progress
 
 
@@ -163,22 +174,80 @@ def _rows(result: dict) -> list[tuple[str, ...]]:
 
 
 def format_table(result: dict) -> str:
-    """A readable table of one evaluation, the protocol on top."""
-    rows = [_HEADER, *_rows(result)]
-    widths = [max(len(row[i]) for row in rows) for i in range(len(_HEADER))]
-    lines = [result["protocol"], f"{result['pedestrians']} fully detected pedestrians; "
-             "collisions: pairs closer than 0.1 m; Col-I / Col-II: TrajNet++'s, against the "
-             "predicted / true neighbours", ""]
-    lines += ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip()
-              for row in rows]
+    """A readable table of one evaluation, the protocol on top; for a TrajNet++ submission,
+    TrajNet++'s own figures below."""
+    lines = [result["protocol"]]
+    if "aoe" in result:
+        rows = [_HEADER, *_rows(result)]
+        lines += [f"{result['pedestrians']} fully detected pedestrians; collisions: pairs "
+                  "closer than 0.1 m; Col-I / Col-II: TrajNet++'s, against the predicted / "
+                  "true neighbours", "", *_aligned(rows)]
+    if "trajnet" in result:
+        lines += ["", *_trajnet_caption(result), "", *_aligned(_trajnet_rows(result["trajnet"]))]
     return "\n".join(lines)
 
 
 def format_markdown(result: dict) -> str:
-    lines = [f"Protocol: {result['protocol']}; {result['pedestrians']} fully detected pedestrians.",
-             "", "| " + " | ".join(_HEADER) + " |", "|---" * len(_HEADER) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in _rows(result)]
+    if "aoe" in result:
+        lines = [f"Protocol: {result['protocol']}; {result['pedestrians']} fully detected "
+                 "pedestrians.", "", *_markdown_rows([_HEADER, *_rows(result)])]
+    else:
+        lines = [f"Protocol: {result['protocol']}."]
+    if "trajnet" in result:
+        lines += ["", *_trajnet_caption(result), "",
+                  *_markdown_rows(_trajnet_rows(result["trajnet"]))]
     return "\n".join(lines) + "\n"
+
+
+def _aligned(rows: list[tuple[str, ...]]) -> list[str]:
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    return ["  ".join(cell.ljust(width) for cell, width in zip(row, widths)).rstrip()
+            for row in rows]
+
+
+def _markdown_rows(rows: list[tuple[str, ...]]) -> list[str]:
+    return ["| " + " | ".join(rows[0]) + " |", "|---" * len(rows[0]) + "|",
+            *("| " + " | ".join(row) + " |" for row in rows[1:])]
+
+
+_TRAJNET_HEADER = ("TrajNet++", "scenes", "ADE", "FDE", "Top-3 ADE", "Top-3 FDE",
+                   "Top-K ADE", "Top-K FDE", "Col-I", "Col-II", "NLL")
+
+
+def _trajnet_caption(result: dict) -> list[str]:
+    """What TrajNet++'s figures are, and why one is missing."""
+    trajnet = result["trajnet"]
+    lines = [f"TrajNet++'s figures (its evaluator's rules): the primary pedestrian of each of "
+             f"the {trajnet['scenes']} scenes; ADE, FDE, Col-I, Col-II of sample 0; Top-k: the "
+             f"sample of least ADE among the first k (K = {trajnet['samples']}), its FDE; "
+             "Col-I, Col-II: % of scenes; NLL: its mean log-likelihood (higher is better) "
+             f"over the first {trajnet['log_likelihood_samples']} samples"]
+    if trajnet["col_i_percent"] is None:
+        lines.append(f"Col-I not defined (TrajNet++ prints -1): in "
+                     f"{trajnet['col_i_undefined_scenes']} scenes the file predicts fewer (or "
+                     "more) neighbours than TrajNet++ counts (everyone seen before the first "
+                     "predicted row; the model predicts those seen at the last two observed ones)")
+    if trajnet["log_likelihood"] is None:
+        lines.append(f"NLL not defined: it needs {trajnet['log_likelihood_samples']} samples "
+                     "(--samples)" if trajnet["samples"] < trajnet["log_likelihood_samples"]
+                     else f"NLL not defined: in {trajnet['log_likelihood_undefined_scenes']} "
+                     "scenes no step's samples span a plane (TrajNet++'s evaluator stops)")
+    if "per_pedestrian_skipped" in result:
+        lines.append(f"gst_jax's per-pedestrian figures not computed: "
+                     f"{result['per_pedestrian_skipped']}")
+    return lines
+
+
+def _trajnet_rows(trajnet: dict) -> list[tuple[str, ...]]:
+    def number(value, digits=3):
+        return "-" if value is None else f"{value:.{digits}f}"
+
+    return [_TRAJNET_HEADER,
+            ("predictions", str(trajnet["scenes"]), number(trajnet["ade"]),
+             number(trajnet["fde"]), number(trajnet["top3_ade"]), number(trajnet["top3_fde"]),
+             number(trajnet["topk_ade"]), number(trajnet["topk_fde"]),
+             number(trajnet["col_i_percent"], 2), number(trajnet["col_ii_percent"], 2),
+             number(trajnet["log_likelihood"], 2))]
 
 
 def _split_windows(data_config: DataConfig, split: str, grid: TimeGrid) -> data.WindowSet:
@@ -210,30 +279,69 @@ def evaluate_run(run, data_config: DataConfig, split: str, *, num_samples: int =
     return result
 
 
+class Written(NamedTuple):
+    """What `write_run_predictions` wrote: its rows, and what they answer ('242 TrajNet++
+    scenes of lcas.ndjson', '176 windows')."""
+
+    rows: int
+    answers: str
+
+
 def write_run_predictions(run, data_config: DataConfig, split: str, path: Path, *,
-                          num_samples: int = 20, seed: int = 0,
+                          num_samples: int = 20, seed: int = 0, windows: bool = False,
                           progress: Progress | None = None,
-                          memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET) -> int:
-    """Write K sampled futures of every window of the split to a TrajNet++ file (the samples
-    `evaluate_run` scores with the same seed); returns the rows written. memory_budget_bytes:
-    see `make_predict`."""
-    window_set = _split_windows(data_config, split, run.model_config.grid)
+                          memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET) -> Written:
+    """Write K sampled futures to a TrajNet++ file: for a TrajNet++ file's own scenes
+    (`load_scenes`) a submission its evaluator pairs scene for scene, those of each scene's
+    primary and of its neighbours the model predicts; else, or with `windows`, those of every
+    window of the split (the samples `evaluate_run` scores with the same seed).
+    memory_budget_bytes: see `make_predict`."""
+    grid = run.model_config.grid
+    scene_set = None if windows else load_scenes(data_config, split, grid)
+    window_set = (scene_set.windows if scene_set is not None
+                  else _split_windows(data_config, split, grid))
     predicted = predict_windows(run.params, jax.random.key(seed), window_set, run.model_config,
                                 num_samples=num_samples,
                                 fully_detected_only=run.train_config.fully_detected_only,
                                 progress=progress, memory_budget_bytes=memory_budget_bytes)
-    return write_predictions(path, window_set, predicted, run.model_config.grid)
+    if scene_set is None:
+        return Written(write_predictions(path, window_set, predicted, grid),
+                       f"{len(window_set)} windows")
+    return Written(write_scene_predictions(path, scene_set, predicted, grid),
+                   f"{len(scene_set)} TrajNet++ scenes of {Path(scene_set.path).name}")
 
 
 def evaluate_prediction_file(path: Path, data_config: DataConfig, split: str, *,
-                             grid: TimeGrid = TimeGrid(), with_kde: bool = True
-                             ) -> dict[str, Any]:
-    """Score a TrajNet++ prediction file (ours or another model's) against a split's windows
-    on the time grid of the predictions, with the metrics of `evaluate_params`."""
-    window_set = _split_windows(data_config, split, grid)
-    result = score(read_predictions(path, window_set, grid.obs_len), obs_len=grid.obs_len,
-                   with_kde=with_kde)
+                             grid: TimeGrid = TimeGrid(), with_kde: bool = True,
+                             windows: bool = False) -> dict[str, Any]:
+    """Score a TrajNet++ prediction file (ours or another model's) on the time grid of the
+    predictions, with the metrics of `evaluate_params`: against a split's windows, or, for a
+    TrajNet++ file's own scenes (`load_scenes`; not with `windows`), against the windows of
+    its scenes, with TrajNet++'s own figures beside them as `result["trajnet"]`."""
+    scene_set = None if windows else load_scenes(data_config, split, grid)
+    if scene_set is not None:
+        result = _score_submission(path, scene_set, grid, with_kde)
+        window_set = scene_set.windows
+    else:
+        window_set = _split_windows(data_config, split, grid)
+        result = score(read_predictions(path, window_set, grid.obs_len), obs_len=grid.obs_len,
+                       with_kde=with_kde)
     result.update(model=str(path), scene=data_config.scene, protocol_name=data_config.protocol,
                   split=split, windows=len(window_set),
                   protocol=protocol_line(data_config, split, result["samples"]))
     return result
+
+
+def _score_submission(path: Path, scene_set: SceneSet, grid: TimeGrid,
+                      with_kde: bool) -> dict[str, Any]:
+    """TrajNet++'s figures of a submission and gst_jax's of the scenes' windows (every fully
+    detected pedestrian: left out, with the reason, where the file lacks one of them)."""
+    file = read_prediction_file(path, scene_set.windows, scene_set.scenes)
+    trajnet = trajnet_metrics.score_submission(file, scene_set)
+    try:
+        result = score(predicted_batches(file, scene_set.windows, grid.obs_len,
+                                         scene_set.scenes),
+                       obs_len=grid.obs_len, with_kde=with_kde)
+    except DataError as error:                  # a file of primaries only, say
+        result = {"samples": file.num_samples, "per_pedestrian_skipped": str(error)}
+    return {**result, "trajnet": trajnet}

@@ -119,6 +119,15 @@ def kde_log_densities(samples: np.ndarray, points: np.ndarray) -> np.ndarray:
     same graph K times) have no density off their support: the floor, where scipy's Cholesky
     factorisation of their covariance fails.
     """
+    log_density, defined = kde_log_densities_where_defined(samples, points)
+    return np.where(defined, np.maximum(log_density, KDE_LOG_DENSITY_FLOOR),
+                    KDE_LOG_DENSITY_FLOOR)
+
+
+def kde_log_densities_where_defined(samples: np.ndarray, points: np.ndarray
+                                    ) -> tuple[np.ndarray, np.ndarray]:
+    """`kde_log_densities` unclipped, and (G,) bool where each is defined: its samples span a
+    plane (scipy's Cholesky factorisation succeeds) and it is finite."""
     samples, points = np.asarray(samples, np.float64), np.asarray(points, np.float64)
     k = samples.shape[0]
     # Scott's rule in 2-D: the kernels' covariance is the samples' (ddof 1) times K^(-1/3);
@@ -145,9 +154,7 @@ def kde_log_densities(samples: np.ndarray, points: np.ndarray) -> np.ndarray:
         peak = np.max(log_kernels, axis=0)
         log_density = (peak + np.log(np.mean(np.exp(log_kernels - peak), axis=0))
                        + log_norm)
-    valid = spans_a_plane & np.isfinite(log_density)
-    return np.where(valid, np.maximum(log_density, KDE_LOG_DENSITY_FLOOR),
-                    KDE_LOG_DENSITY_FLOOR)
+    return log_density, spans_a_plane & np.isfinite(log_density)
 
 
 def kde_nll(s: Scored) -> dict[str, Ratio]:

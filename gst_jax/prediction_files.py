@@ -1,7 +1,16 @@
 """Predictions as files, in the TrajNet++ ndjson format, and back.
 
-One scene row per window of the split (its index, first and last frame), the observed tracks,
-then K sampled futures of every predicted pedestrian, one row per step and sample:
+Two kinds of file. For a TrajNet++ file's own scenes (`gst_jax.data.trajnet`), a submission
+as TrajNet++'s evaluator reads it: each scene row of the data in its order (its id, primary,
+frames, fps and tag), then K sampled futures of its primary and of every neighbour the model
+predicts, the primary first, one row per predicted row of the scene and sample:
+
+    {"scene": {"id": 253, "p": 725, "s": 799, "e": 819, "fps": 2.5, "tag": [1, []]}}
+    {"track": {"f": 808, "p": 725, "x": 4.12, "y": 7.9, "prediction_number": 0, "scene_id": 253}}
+
+For the windows of a split (`write_predictions`, any data), one scene row per window (its
+index, first and last frame), the observed tracks, then K sampled futures of every predicted
+pedestrian; "p" is the first of them, not a TrajNet++ primary:
 
     {"scene": {"id": 3, "p": 17, "s": 120, "e": 310, "fps": 2.5, "tag": 0}}
     {"track": {"f": 120, "p": 17, "x": 4.12, "y": 7.9}}
@@ -9,8 +18,7 @@ then K sampled futures of every predicted pedestrian, one row per step and sampl
 
 Frames are the data's own frame ids, coordinates metres in the data's own frame (the windows'
 origins added back), written at full precision, so that a file scores exactly as the
-predictions it was written from. TrajNet++ names the scene's primary pedestrian "p"; every
-pedestrian is predicted here, and "p" is the first of them.
+predictions it was written from.
 """
 
 from __future__ import annotations
@@ -18,14 +26,18 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Iterable, Iterator, NamedTuple
+from typing import Iterable, Iterator, NamedTuple, Sequence
 
 import numpy as np
 
 from gst_jax import data
 from gst_jax.config import TimeGrid
 from gst_jax.data import SceneBatch
+from gst_jax.data.trajnet import Scene, SceneSet
 from gst_jax.errors import DataError
+
+# A predicted position's key: (scene id, pedestrian, frame, sample).
+_SampleKey = tuple[int, int, int, int]
 
 
 class PredictedBatch(NamedTuple):
@@ -48,19 +60,44 @@ def write_predictions(path: Path, window_set: data.WindowSet,
 
     The file appears only when complete (written beside it, then renamed).
     """
+    def lines() -> Iterator[list[str]]:
+        for batch, positions, predicted_mask in predicted:
+            assert positions is not None, "a baseline's batch has no predictions to write"
+            for b, index in enumerate(np.asarray(batch.window_index)):
+                if batch.scene_mask[b]:
+                    yield _window_rows(int(index), window_set[int(index)], positions[:, b],
+                                       predicted_mask[b], grid)
+    return _write_complete(path, lines())
+
+
+def write_scene_predictions(path: Path, scene_set: SceneSet,
+                            predicted: Iterable[PredictedBatch], grid: TimeGrid) -> int:
+    """Write a TrajNet++ submission: each scene of `scene_set` in its file's order, with the
+    sampled futures of its primary and of the neighbours predicted with it (`predicted`: the
+    batches of `scene_set.windows`, in any order); returns the rows written.
+
+    The file appears only when complete (written beside it, then renamed).
+    """
+    def lines() -> Iterator[list[str]]:
+        futures: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for batch, positions, predicted_mask in predicted:
+            assert positions is not None, "a baseline's batch has no predictions to write"
+            for b, index in enumerate(np.asarray(batch.window_index)):
+                if batch.scene_mask[b]:
+                    futures[int(index)] = positions[:, b], predicted_mask[b]
+        for index, scene in enumerate(scene_set.scenes):
+            yield _scene_rows(scene, scene_set.windows[index], *futures[index], grid)
+    return _write_complete(path, lines())
+
+
+def _write_complete(path: Path, chunks: Iterable[list[str]]) -> int:
+    """Write the lines of every chunk beside `path`, then rename: no half file is left."""
     rows, partial = 0, partial_path(path)
     try:
         with open(partial, "w") as out:
-            for batch, positions, predicted_mask in predicted:
-                assert positions is not None, "a baseline's batch has no predictions to write"
-                for b, index in enumerate(np.asarray(batch.window_index)):
-                    if not batch.scene_mask[b]:
-                        continue
-                    window = window_set[int(index)]
-                    lines = _window_rows(int(index), window, positions[:, b],
-                                         predicted_mask[b], grid)
-                    out.write("".join(line + "\n" for line in lines))
-                    rows += len(lines)
+            for lines in chunks:
+                out.write("".join(line + "\n" for line in lines))
+                rows += len(lines)
     except BaseException:             # a full disk, Ctrl-C, SIGTERM: no half file is left
         partial.unlink(missing_ok=True)
         raise
@@ -112,19 +149,86 @@ def _window_rows(index: int, window: data.Window, futures: np.ndarray, predicted
     return lines
 
 
+def _scene_rows(scene: Scene, window: data.Window, futures: np.ndarray, predicted: np.ndarray,
+                grid: TimeGrid) -> list[str]:
+    """A TrajNet++ scene's row and its predicted rows, sample by sample, the primary first.
+    futures (K, P, N, 2) relative to the window's origin; predicted (N,)."""
+    ids = [int(p) for p in window.pedestrian_ids]
+    primary = ids.index(scene.primary)
+    assert predicted[primary] > 0, "a scene's primary is detected at its current frame"
+    slots = [primary] + [n for n in range(len(ids)) if predicted[n] > 0 and n != primary]
+    fields = {"id": scene.scene_id, "p": scene.primary, "s": scene.start, "e": scene.end}
+    fields.update({key: value for key, value in (("fps", scene.fps), ("tag", scene.tag))
+                   if value is not None})
+    lines = [json.dumps({"scene": fields})]
+    for k in range(futures.shape[0]):
+        for n in slots:
+            for t in range(futures.shape[1]):
+                x, y = futures[k, t, n] + window.origin
+                lines.append(json.dumps({"track": {
+                    "f": _frame(window, grid.obs_len + t), "p": ids[n], "x": float(x),
+                    "y": float(y), "prediction_number": k, "scene_id": scene.scene_id}}))
+    return lines
+
+
 def _frame(window: data.Window, step: int) -> int:
     return int(window.start_frame + step * window.frame_step)
 
 
-def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int
-                     ) -> Iterator[PredictedBatch]:
+class PredictionFile(NamedTuple):
+    """A prediction file read and checked against the scenes of the data it answers.
+
+    path: the file; scene_rows: its scene rows in order, (line, id, p, s, e) each; samples:
+    every predicted position (x, y) by (scene id, pedestrian, frame, sample); num_samples: K,
+    one more than the largest prediction_number.
+    """
+
+    path: Path
+    scene_rows: list[tuple[int, int, int, int, int]]
+    samples: dict[_SampleKey, tuple[float, float]]
+    num_samples: int
+
+
+class _Expected(NamedTuple):
+    """The scenes a file may name: their id -> (first, last frame); what they are, to say so."""
+
+    frames: dict[int, tuple[int, int]]
+    kind: str                   # "window": the split's windows; "scene": TrajNet++'s scenes
+
+
+def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int,
+                     scenes: Sequence[Scene] | None = None) -> Iterator[PredictedBatch]:
     """The predictions of a TrajNet++ file for the windows of `window_set`, in the batches of
     `data.evaluation_batches`. Every fully detected pedestrian (those scored) must have all K
-    samples at every future step; a `DataError` names the file, line and what was wrong."""
-    samples = _read_samples(Path(path), window_set)
+    samples at every future step; a `DataError` names the file, line and what was wrong.
+    scenes: the TrajNet++ scenes the windows were read from (`SceneSet.scenes`): the file's
+    scene ids and frames are theirs; None: the windows' own indices and frame ranges."""
+    file = read_prediction_file(path, window_set, scenes)
+    return predicted_batches(file, window_set, obs_len, scenes)
+
+
+def read_prediction_file(path: Path, window_set: data.WindowSet,
+                         scenes: Sequence[Scene] | None = None) -> PredictionFile:
+    """Read a prediction file, every row checked: its scene rows against the windows of
+    `window_set` (or the TrajNet++ `scenes` they were read from), its predicted rows' scene
+    ids among them."""
+    if scenes is None:
+        expected = _Expected({i: window.frame_range
+                              for i, window in enumerate(window_set.windows)}, "window")
+    else:
+        expected = _Expected({scene.scene_id: (scene.start, scene.end) for scene in scenes},
+                             "scene")
+    scene_rows, samples = _read_samples(Path(path), expected)
     num_samples = 1 + max((k for (_, _, _, k) in samples), default=-1)
     if num_samples == 0:
         raise DataError(f"{path}: no predicted track (rows with a prediction_number)")
+    return PredictionFile(Path(path), scene_rows, samples, num_samples)
+
+
+def predicted_batches(file: PredictionFile, window_set: data.WindowSet, obs_len: int,
+                      scenes: Sequence[Scene] | None = None) -> Iterator[PredictedBatch]:
+    """`read_predictions` of a file already read."""
+    path, samples, num_samples = file.path, file.samples, file.num_samples
     for batch in data.evaluation_batches(window_set):
         scene_count, steps, slots = batch.positions.shape[:3]
         pred_len = steps - obs_len
@@ -134,28 +238,32 @@ def read_predictions(path: Path, window_set: data.WindowSet, obs_len: int
             if not batch.scene_mask[b]:
                 continue
             window = window_set[int(index)]
+            scene_id = int(index) if scenes is None else scenes[int(index)].scene_id
             for n, pedestrian in enumerate(window.pedestrian_ids):
                 for k in range(num_samples):
                     for t in range(pred_len):
                         frame = _frame(window, obs_len + t)
-                        xy = samples.get((int(index), int(pedestrian), frame, k))
+                        xy = samples.get((scene_id, int(pedestrian), frame, k))
                         if xy is not None:
                             positions[k, b, t, n] = np.asarray(xy) - window.origin
         predicted_mask = np.all(np.isfinite(positions), axis=(0, 2, 4)).astype(np.float32)
         missing = np.argwhere((scored > 0) & (predicted_mask == 0))
         if len(missing):
             b, n = missing[0]
-            window = window_set[int(batch.window_index[b])]
-            raise DataError(f"{path}: pedestrian {int(window.pedestrian_ids[n])} of scene "
-                            f"{int(batch.window_index[b])} is scored (fully detected) but lacks "
+            index = int(batch.window_index[b])
+            scene_id = index if scenes is None else scenes[index].scene_id
+            raise DataError(f"{path}: pedestrian {int(window_set[index].pedestrian_ids[n])} "
+                            f"of scene {scene_id} is scored (fully detected) but lacks "
                             f"some of its {num_samples} x {pred_len} predicted positions")
         yield PredictedBatch(batch, positions, predicted_mask)
 
 
-def _read_samples(path: Path, window_set: data.WindowSet
-                  ) -> dict[tuple[int, int, int, int], tuple[float, float]]:
-    """(scene, pedestrian, frame, sample) -> (x, y) of every predicted row; checks each row."""
-    samples = {}
+def _read_samples(path: Path, expected: _Expected
+                  ) -> tuple[list[tuple[int, int, int, int, int]],
+                             dict[_SampleKey, tuple[float, float]]]:
+    """The scene rows (line, id, p, s, e) and (scene, pedestrian, frame, sample) -> (x, y) of
+    every predicted row; checks each row."""
+    scene_rows, samples = [], {}
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -172,7 +280,7 @@ def _read_samples(path: Path, window_set: data.WindowSet
             raise DataError(f"{where}: not JSON ({error.msg})") from None
         row = row if isinstance(row, dict) else {}
         if isinstance(row.get("scene"), dict):
-            _check_scene(where, row["scene"], window_set)
+            scene_rows.append((line_number, *_check_scene(where, row["scene"], expected)))
             continue
         track = row.get("track")
         if not isinstance(track, dict):
@@ -181,26 +289,35 @@ def _read_samples(path: Path, window_set: data.WindowSet
             continue                            # an observation: the truth comes from the data
         f, p, k, scene = (_integer(where, track, name)
                           for name in ("f", "p", "prediction_number", "scene_id"))
-        if not 0 <= scene < len(window_set):
-            raise DataError(f"{where}: scene_id {scene} is not a window of the data "
-                            f"({len(window_set)} windows)")
+        if scene not in expected.frames:
+            raise DataError(f"{where}: scene_id {scene} is not {_among(expected)}")
         if k < 0:
             raise DataError(f"{where}: prediction_number {k} is negative")
         samples[scene, p, f, k] = (_number(where, track, "x"), _number(where, track, "y"))
-    return samples
+    return scene_rows, samples
 
 
-def _check_scene(where: str, scene, window_set: data.WindowSet) -> None:
-    """A scene row must describe the window of the same index: same first and last frame."""
+def _among(expected: _Expected) -> str:
+    count = len(expected.frames)
+    if expected.kind == "window":
+        return f"a window of the data ({count} windows)"
+    return f"a TrajNet++ scene of the data's split ({count} scenes)"
+
+
+def _check_scene(where: str, scene, expected: _Expected) -> tuple[int, int, int, int]:
+    """A scene row must describe the window (or TrajNet++ scene) of the same id: same first
+    and last frame. Returns its id, p, s, e."""
     index, first, last = (_integer(where, scene, name) for name in ("id", "s", "e"))
-    if not 0 <= index < len(window_set):
-        raise DataError(f"{where}: scene {index} is not a window of the data "
-                        f"({len(window_set)} windows)")
-    if window_set[index].frame_range != (first, last):
-        expected = window_set[index].frame_range
-        raise DataError(f"{where}: scene {index} covers frames {first}-{last}, but window "
-                        f"{index} of the data covers {expected[0]}-{expected[1]}: were the "
-                        "predictions made for this data and split?")
+    if index not in expected.frames:
+        raise DataError(f"{where}: scene {index} is not {_among(expected)}")
+    if expected.frames[index] != (first, last):
+        shown = expected.frames[index]
+        hint = ("" if expected.kind == "window" else "; a file of the split's windows "
+                "(`predict --windows`) is scored with --windows")
+        raise DataError(f"{where}: scene {index} covers frames {first}-{last}, but "
+                        f"{expected.kind} {index} of the data covers {shown[0]}-{shown[1]}: "
+                        f"were the predictions made for this data and split?{hint}")
+    return index, _integer(where, scene, "p"), first, last
 
 
 def _integer(where: str, fields: dict, name: str) -> int:

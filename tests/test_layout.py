@@ -35,7 +35,8 @@ LAYERS = (
                  "gst_jax.crowdnav", "gst_jax.conformal.", "gst_jax.stream", "gst_jax.stream_core",
                  "gst_jax.stream_time", "gst_jax.stream_fallback",
                  "gst_jax.stream_file",
-                 "gst_jax.prediction_files", "gst_jax.figures", "gst_jax.simulate",
+                 "gst_jax.prediction_files", "gst_jax.trajnet_metrics", "gst_jax.figures",
+                 "gst_jax.simulate",
                  # the simulators' core (but ORCA, numerics), the paper's, CrowdNav++'s
                  "gst_jax.simulate.agents", "gst_jax.simulate.agents.motion",
                  "gst_jax.simulate.agents.predicted", "gst_jax.simulate.paper",

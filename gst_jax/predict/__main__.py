@@ -2,10 +2,16 @@
 `python -m gst_jax.predict MODEL --data PATH --out predictions.ndjson`.
 
 MODEL is a work directory (or one of its checkpoints), SWEEP_DIR:MEMBER or pretrained:NAME.
-Every window of the split gets a scene row, its observed tracks and K sampled futures of every
-predicted pedestrian (rows with prediction_number and scene_id), in metres and the data's own
-frame ids. `python -m gst_jax.evaluate --predictions FILE --data PATH` scores such a file; with
-the same seed it scores exactly as `python -m gst_jax.evaluate MODEL` does. A crowd too
+For a TrajNet++ file (scene rows with their primary pedestrians), the file is a submission
+TrajNet++'s evaluator pairs scene for scene: each of the file's scenes of the split, in its
+order, with its id and frames, and K sampled futures of its primary and of the neighbours the
+model predicts (rows with prediction_number and scene_id); the model observes the last 8 of
+the scene's 9 observed rows and predicts its 12 scored ones (docs/own-data.md). For other
+data, or with --windows, every window of the split gets a scene row, its observed tracks and
+K sampled futures of every predicted pedestrian. Positions are metres, frames the data's own
+ids. `python -m gst_jax.evaluate --predictions FILE --data PATH` scores such a file (with
+TrajNet++'s own figures for a submission); a --windows file with the same seed scores exactly
+as `python -m gst_jax.evaluate MODEL` does. A crowd too
 large for `--memory-budget` samples in chunks; one that cannot fit in the memory available,
 even one sample at a time, is refused in one line before anything is allocated, and so is a
 process whose memory limit leaves too little for XLA's compiler. A crowd large enough for
@@ -35,6 +41,7 @@ def main(argv: list[str] | None = None) -> None:
     cli.add_data_flags(parser, of_run=True)
     cli.add_sampling_flags(parser)
     parser.add_argument("--out", required=True, help="the prediction file to write (ndjson)")
+    cli.add_windows_flag(parser, scoring=False)
     parser.add_argument("--memory-budget", type=cli.positive_float, metavar="GIB",
                         default=DEFAULT_MEMORY_BUDGET / 2 ** 30, help="memory one batch's "
                         "program may use; larger crowds sample in chunks (default: %(default)s)")
@@ -48,12 +55,12 @@ def predict(args) -> None:
     out = Path(args.out)
     check_output(out, split_files(data_config, args.split))
     with removed_on_forced_exit(partial_path(out)):
-        rows = write_run_predictions(run, data_config, args.split, out,
-                                     num_samples=args.samples, seed=args.seed,
-                                     progress=Progress(),
-                                     memory_budget_bytes=int(args.memory_budget * 2 ** 30))
-    cli.say(f"written: {args.out} ({rows} rows: {data_config.scene}, {args.split} split, "
-            f"{args.samples} samples of {run.name})")
+        written = write_run_predictions(run, data_config, args.split, out,
+                                        num_samples=args.samples, seed=args.seed,
+                                        windows=args.windows, progress=Progress(),
+                                        memory_budget_bytes=int(args.memory_budget * 2 ** 30))
+    cli.say(f"written: {args.out} ({written.rows} rows: {written.answers}, {data_config.scene}, "
+            f"{args.split} split, {args.samples} samples of {run.name})")
 
 
 if __name__ == "__main__":
