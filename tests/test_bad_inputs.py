@@ -116,8 +116,13 @@ MOT_ROW = "{f},1,-1,-1,-1,-1,1,{x},0.5,0"
      "1: the header (frame, id, bb_left, bb_top, bb_width, bb_height, conf, x, y, z) has no "
      "column 'ped'"),
     (["time,who,x,y", "0,1,0.0,0.5"], None,
-     "1: the header (time, who, x, y) names no frame column (frame / frame_id); say which "
-     "columns hold frame, id, x, y with --columns (e.g. --columns frame,id,x,y or 1,2,8,9)"),
+     "1: the header (time, who, x, y) names no frame column: none of its columns is named "
+     "frame or frame_id; say which columns hold frame, id, x, y with --columns (e.g. "
+     "--columns frame,id,x,y or 1,2,8,9)"),
+    (["frame,id,px,py", "0,1,0.0,0.5"], None,
+     "1: the header (frame, id, px, py) names no x column: none of its columns is named x; say "
+     "which columns hold frame, id, x, y with --columns (e.g. --columns frame,id,x,y or "
+     "1,2,8,9)"),
     ([MOT_HEADER, MOT_ROW.format(f=10, x=1.0), "20,1,-1,-1,-1"], None,
      "3: expected 10 columns as line 1 has (frame 1, pedestrian id 2, x 8, y 9), found 5: "
      "'20,1,-1,-1,-1'"),

@@ -177,9 +177,11 @@ def _column_indices(path: Path, line_number: int, header: list[str] | None,
         for role in ROLES:
             found = [name for name in HEADER_NAMES[role] if name in names]
             if not found:
+                *others, last = HEADER_NAMES[role]
+                listed = f"{', '.join(others)} or {last}" if others else last
                 raise DataError(f"{path}:{line_number}: the header ({shown}) names no "
-                                f"{role} column ({' / '.join(HEADER_NAMES[role])}); say which "
-                                "columns hold frame, id, x, y with --columns (e.g. "
+                                f"{role} column: none of its columns is named {listed}; say "
+                                "which columns hold frame, id, x, y with --columns (e.g. "
                                 "--columns frame,id,x,y or 1,2,8,9)")
             named.append(found[0])
         columns = tuple(named)
