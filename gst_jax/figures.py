@@ -60,15 +60,28 @@ def errors_against_n(results: dict, path: Path) -> Path:
 
 # --- Seeing one prediction (the paper's Fig. 3) ------------------------------------------
 
+# A sampled edge whose selection probability is below this was drawn from a row of zeros (the
+# release's attention underflowed, docs/MODEL.md 2.1): by the Gumbel noise alone.
+NOISE_DRAWN_BELOW = 1e-6
+SAMPLED_EDGES_CAPTION = (
+    "Sampled edges (arrows, black cells): sample 0's graph, Gumbel-softmax draws from the "
+    "selection probabilities (the edge selector's, docs/MODEL.md 2.1), along which the encoder "
+    "attends, with weights not drawn here. Selection probability: mean over the n heads, as "
+    "`plot attention` and experiments/selector_alive.py measure it; a dashed pink edge was "
+    "drawn with selection probability 0, by the noise alone.")
+
+
 def scene_prediction(observed, observed_mask, future, future_mask, samples, predicted_mask,
                      fully_detected, adjacency_steps, step_labels, path: Path,
                      title: str = "") -> Path:
-    """Trajectories (top), sampled graphs (middle) and adjacency matrices (bottom).
+    """Trajectories (top), sampled graphs (middle) and adjacency matrices (bottom), with
+    SAMPLED_EDGES_CAPTION beneath.
 
     observed (T, N, 2) / observed_mask (T, N); future (P, N, 2) / future_mask (P, N);
     samples (K, P, N, 2) predicted positions; predicted_mask, fully_detected (N,) bool;
-    adjacency_steps: one (adjacency (N, N+1) ghost last, positions (N, 2), velocities (N, 2),
-    present (N,) bool) per graph column, titled by step_labels.
+    adjacency_steps: one (sampled adjacency (N, N+1) ghost last, selection probabilities
+    (N, N+1), positions (N, 2), velocities (N, 2), present (N,) bool) per graph column, titled
+    by step_labels.
     """
     columns = len(adjacency_steps)
     fig = plt.figure(figsize=(3.2 * columns, 9.0))
@@ -94,20 +107,30 @@ def scene_prediction(observed, observed_mask, future, future_mask, samples, pred
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(title, fontsize=8)
-    for c, ((adjacency, positions, velocities, present), label) in enumerate(
+    for c, ((adjacency, selection, positions, velocities, present), label) in enumerate(
             zip(adjacency_steps, step_labels)):
         graph_ax = fig.add_subplot(grid[1, c])
         graph_ax.scatter(positions[present, 0], positions[present, 1], s=12, color="black")
         graph_ax.quiver(positions[present, 0], positions[present, 1], velocities[present, 0],
                         velocities[present, 1], color="tab:gray", angles="xy",
                         scale_units="xy", scale=0.5, width=0.004)
-        for target in range(num):
-            for neighbour in range(num):
-                if present[target] and adjacency[target, neighbour] > 0.5 and neighbour != target:
-                    graph_ax.annotate("", xy=positions[neighbour], xytext=positions[target],
-                                      arrowprops=dict(arrowstyle="->", color="tab:purple", lw=1))
+        sampled = [(target, neighbour) for target in range(num) for neighbour in range(num)
+                   if present[target] and adjacency[target, neighbour] > 0.5
+                   and neighbour != target]
+        drawn = [(target, neighbour) for target, neighbour in sampled if present[neighbour]]
+        for target, neighbour in drawn:
+            by_noise = selection[target, neighbour] < NOISE_DRAWN_BELOW
+            graph_ax.annotate("", xy=positions[neighbour], xytext=positions[target],
+                              arrowprops=dict(arrowstyle="->", lw=1,
+                                              color="tab:pink" if by_noise else "tab:purple",
+                                              linestyle="--" if by_noise else "-"))
         graph_ax.set_aspect("equal", adjustable="datalim")
-        graph_ax.set_title(f"sampled graph, {label}", fontsize=8)
+        chance = (f"selection probability of these edges: mean "
+                  f"{np.mean([selection[e] for e in drawn]):.2f}" if drawn
+                  else "no edge sampled to another person")
+        if absent := len(sampled) - len(drawn):     # padding, or nobody there at this step
+            chance += f"\n{absent} more sampled to empty slots (not drawn)"
+        graph_ax.set_title(f"sampled edges, {label}\n{chance}", fontsize=8)
         matrix_ax = fig.add_subplot(grid[2, c])
         matrix_ax.imshow(adjacency[:num], cmap="Greys", vmin=0, vmax=1)
         every = 1 if num <= 16 else 5
@@ -116,7 +139,10 @@ def scene_prediction(observed, observed_mask, future, future_mask, samples, pred
         matrix_ax.set_yticks(ticks, [str(i) for i in ticks], fontsize=6)
         matrix_ax.set_xlabel("neighbour (g = ghost)", fontsize=7)
         matrix_ax.set_ylabel("target", fontsize=7)
-    fig.tight_layout()
+        matrix_ax.set_title("sampled edges (black)", fontsize=7)
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    fig.text(0.5, 0.005, SAMPLED_EDGES_CAPTION, ha="center", va="bottom", fontsize=6.5,
+             wrap=True)
     return save(fig, path)
 
 
@@ -141,7 +167,7 @@ def attention_over_time(probabilities, present, agent: int, obs_len: int, step_s
     ax.axvline(obs_len + 0.5, color="tab:gray", lw=0.8)
     ax.text(obs_len + 0.7, 0.95, "prediction", fontsize=7, va="top")
     ax.set_xlabel(f"selector call ({step_s:g} s steps)")
-    ax.set_ylabel(f"attention of agent {agent}")
+    ax.set_ylabel(f"selection probability, agent {agent}")
     ax.set_ylim(0, 1.02)
     ax.legend(fontsize=6, ncol=2)
     ax.set_title(title, fontsize=8)

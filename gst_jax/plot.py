@@ -14,8 +14,8 @@ from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_model
 
 COMMANDS = {
-    "scene": "observed, true and K predicted paths, sampled graphs and adjacency matrices of "
-             "one test window (Fig. 3)",
+    "scene": "observed, true and K predicted paths of one test window, and sample 0's sampled "
+             "edges with their selection probabilities (Fig. 3)",
     "attention": "one agent's selection probabilities over its neighbours and the ghost, per step",
     "training": "loss (and validation AOE/FOE) per epoch"}
 

@@ -36,10 +36,14 @@ def predict_window(run: Run, data_config: DataConfig, index: int, samples: int, 
 
 def scene_figure(run: Run, data_config: DataConfig, index: int, out: Path, *, samples: int = 20,
                  seed: int = 0, pdf: bool = False) -> Path:
-    """Observed, true and K predicted paths of a test window with the graphs of sample 0 at
-    the last observed step and in the middle of the prediction."""
+    """Observed, true and K predicted paths of a test window with the sampled edges of sample
+    0, and their selection probabilities, at the last observed step and in the middle of the
+    prediction."""
     window, batch, prediction = predict_window(run, data_config, index, samples, seed)
-    assert prediction.sampled_adjacency is not None, "predict_window predicts the graphs"
+    assert prediction.sampled_adjacency is not None and prediction.edge_probs is not None, (
+        "predict_window predicts the graphs")
+    heads = max(run.model_config.num_edge_heads, 1)
+    selection = prediction.edge_probs[0, 0, :, :, :heads].mean(axis=-2)       # (S, N, N+1)
     obs_len = run.model_config.obs_len
     positions, mask = batch.positions[0], batch.position_mask[0]
     predicted_paths = prediction.positions[:, 0]                           # (K, P, N, 2)
@@ -48,13 +52,14 @@ def scene_figure(run: Run, data_config: DataConfig, index: int, out: Path, *, sa
     # A velocity needs both of the last two observed positions (not a zero-filled one).
     velocity = ((positions[obs_len - 1] - positions[obs_len - 2])
                 * batch.predicted_mask(obs_len)[0][:, None])
-    last_obs = (prediction.sampled_adjacency[0, 0, obs_len - 1], positions[obs_len - 1],
-                velocity, mask[obs_len - 1] > 0)
+    last_obs = (prediction.sampled_adjacency[0, 0, obs_len - 1], selection[obs_len - 1],
+                positions[obs_len - 1], velocity, mask[obs_len - 1] > 0)
     columns, labels = [last_obs], [f"t = {obs_len} (last observed)"]
     if prediction.sampled_adjacency.shape[2] > obs_len:                     # LSTM rollouts
         sample0 = predicted_paths[0]
         previous = sample0[middle - 1] if middle else positions[obs_len - 1]
-        columns.append((prediction.sampled_adjacency[0, 0, obs_len + middle], sample0[middle],
+        columns.append((prediction.sampled_adjacency[0, 0, obs_len + middle],
+                        selection[obs_len + middle], sample0[middle],
                         sample0[middle] - previous, predicted))
         labels.append(f"t = {obs_len + middle + 1} (predicted)")
     title = (f"{data_config.scene} test window {index}, {samples} samples, "

@@ -8,8 +8,9 @@ import json
 import jax
 import numpy as np
 import pytest
+from matplotlib.colors import to_rgb
 
-from gst_jax import data, plot
+from gst_jax import data, figures, plot
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.io.workdir import WorkDir, run_config
 from gst_jax.testing.drawn import colour_pixels, line_data, saved_figures
@@ -72,6 +73,38 @@ def test_the_scene_figure_draws_the_windows_paths_its_samples_and_graphs(random_
     for drawn, again in zip(line_data(paths), line_data(saved[out.with_suffix(".pdf")].axes[0])):
         np.testing.assert_array_equal(drawn, again)
     assert colour_pixels(out) > 5_000        # its legend alone has 384 pixels in colour
+
+
+def test_the_scene_figure_tells_sampled_edges_from_their_selection_probability(tmp_path):
+    """Three people present and a fourth slot empty: 0 -> 1 sampled with selection
+    probability 0 (a row of zeros: the noise's draw), 1 -> 2 with 0.7, 2 -> the ghost and to
+    the empty slot (no arrow). The first is dashed pink, the second purple; the panel gives
+    their mean selection probability, 0.35, and counts the edge to the empty slot; the caption
+    says what the arrows are and are not."""
+    adjacency, selection = np.zeros((4, 5)), np.zeros((4, 5))
+    adjacency[0, 1] = adjacency[1, 2] = adjacency[2, 4] = adjacency[2, 3] = 1.0
+    selection[1, 2], selection[2, 4] = 0.7, 1.0
+    positions = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [5.0, 5.0]])
+    present = np.array([True, True, True, False])
+    out = tmp_path / "scene.png"
+    with saved_figures() as saved:
+        figures.scene_prediction(np.zeros((8, 4, 2)), np.ones((8, 4)), np.zeros((12, 4, 2)),
+                                 np.ones((12, 4)), np.zeros((2, 12, 4, 2)), present, present,
+                                 [(adjacency, selection, positions, np.zeros((4, 2)), present)],
+                                 ["t = 8"], out)
+    figure = saved[out]
+    graph = figure.axes[1]
+    arrows = {(tuple(a.xyann), tuple(a.xy)): a.arrow_patch for a in graph.texts}
+    assert set(arrows) == {((0.0, 0.0), (1.0, 0.0)), ((1.0, 0.0), (1.0, 1.0))}
+    by_noise, selected = arrows[(0.0, 0.0), (1.0, 0.0)], arrows[(1.0, 0.0), (1.0, 1.0)]
+    assert by_noise.get_linestyle() == "--" and selected.get_linestyle() == "-"
+    assert to_rgb(by_noise.get_edgecolor()) == to_rgb("tab:pink")
+    assert to_rgb(selected.get_edgecolor()) == to_rgb("tab:purple")
+    assert graph.get_title().splitlines()[1:] == [
+        "selection probability of these edges: mean 0.35",
+        "1 more sampled to empty slots (not drawn)"]
+    assert [text.get_text() for text in figure.texts] == [figures.SAMPLED_EDGES_CAPTION]
+    assert "not drawn here" in figures.SAMPLED_EDGES_CAPTION
 
 
 def test_the_attention_figure_draws_every_neighbour_where_the_model_sees_it(random_run,
