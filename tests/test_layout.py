@@ -34,7 +34,8 @@ LAYERS = (
                  "gst_jax.predictors",
                  "gst_jax.crowdnav", "gst_jax.conformal.", "gst_jax.stream", "gst_jax.stream_core",
                  "gst_jax.stream_time", "gst_jax.stream_fallback",
-                 "gst_jax.stream_file",
+                 "gst_jax.stream_file", "gst_jax.stream_checks", "gst_jax.stream_slots",
+                 "gst_jax.stream_programs", "gst_jax.stream_output",
                  "gst_jax.prediction_files", "gst_jax.trajnet_metrics", "gst_jax.figures",
                  "gst_jax.simulate",
                  # the simulators' core (but ORCA, numerics), the paper's, CrowdNav++'s

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import conformal, coverage, data, resources, stream
+from gst_jax import conformal, coverage, data, resources, stream, stream_programs
 from gst_jax.compiles import count_compiles
 from gst_jax.data.readers import read_tracks, to_model_rate
 from gst_jax.data.windows import cut_windows, kept
@@ -330,7 +330,7 @@ def test_a_compilation_cache_gives_a_restarted_stream_its_programs(sim_run, tmp_
     folder = tmp_path / "xla"
     stream.Stream(sim_run, max_speed=3.0, compilation_cache=folder).warm_up(8)
     assert any("host_step" in path.name for path in folder.iterdir())
-    stream._jitted_step.cache_clear()
+    stream_programs._jitted_step.cache_clear()
     jax.clear_caches()
     caplog.set_level(logging.DEBUG, logger="jax._src.compiler")
     stream.Stream(sim_run, max_speed=3.0, compilation_cache=folder).warm_up(8)
@@ -477,13 +477,13 @@ def test_each_capacitys_step_is_checked_before_it_first_runs(sim_run, monkeypatc
     refuses in one line what memory cannot hold and announces a crowd that is large for the
     exact model (issue 78); a later step of that capacity is not checked again."""
     seen = []
-    check = stream.compile_checked
+    check = stream_programs.compile_checked
 
     def recorded(program, args, config, slots, what, **options):
         seen.append(what)
         return check(program, args, config, slots, what, **options)
 
-    monkeypatch.setattr(stream, "compile_checked", recorded)
+    monkeypatch.setattr(stream_programs, "compile_checked", recorded)
     player = stream.Stream(sim_run, max_speed=None, deadline_s=None)    # compiles in the loop
     xy = walkers(12, 3)
     for t, people in enumerate((4, 12, 12)):

@@ -19,7 +19,7 @@ import jax
 import numpy as np
 import pytest
 
-from gst_jax import conformal, resources, stream, stream_fallback
+from gst_jax import conformal, resources, stream, stream_fallback, stream_programs
 from gst_jax.adaptation import SpeedScale
 from gst_jax.errors import DataError
 from gst_jax.runs import load_model
@@ -102,10 +102,10 @@ def test_the_tracks_a_frame_leaves_are_counted_before_it(sim_run):
     counts = []
     for ids, idle in [(np.arange(4, 12), 0), (np.arange(4, 12), 3), (np.arange(4, 12), 4),
                       (np.array([3, 4]), 0)]:
-        state = player._resized(16)                          # room for them all
+        state = player._slots._resized(16)                   # room for them all
         for frame in [empty] * idle + [(ids, xy[5, ids])]:
             state = stream_fallback.observe(state, *frame, lost)
-        counts.append(player._held_after(ids, lost, idle))
+        counts.append(player._slots._held_after(ids, lost, idle))
         assert counts[-1] == int((state.track_ids != stream.FREE).sum())
     # 0, 1, 2, 4, 5 kept and 6-11 new; after 3 empty steps 0 and 1 are gone; after 4, all;
     # 3, lost and seen again, is a new track.
@@ -205,13 +205,13 @@ def test_a_frame_needing_a_new_capacity_gets_constant_velocity_while_it_compiles
     waited = stream.Stream(sim_run, regions=REGIONS, deadline_s=None)
     expected = [waited.step(ids, xy[t, ids]) for t, ids in enumerate(frames)]
 
-    compile_now = stream._compile
+    compile_now = stream_programs._compile
 
     def held_back(*args):
         release.wait()
         return compile_now(*args)
 
-    monkeypatch.setattr(stream, "_compile", held_back)
+    monkeypatch.setattr(stream_programs, "_compile", held_back)
     player = stream.Stream(sim_run, regions=REGIONS, deadline_s=30.0)
     release.set()                             # the first program compiles at the first step
     player.step(frames[0], xy[0, frames[0]])
@@ -230,7 +230,7 @@ def test_a_frame_needing_a_new_capacity_gets_constant_velocity_while_it_compiles
     assert int(player.state.feed.step) == player.frames == 9     # the buffer's clock kept
 
     release.set()
-    player._finish_compiling()
+    player._slots._finish_compiling()
     for t, ids in enumerate(frames[9:], 9):
         out = player.step(ids, xy[t, ids])
         assert out.fallback is None
@@ -255,7 +255,7 @@ def test_a_capacity_whose_compiling_memory_cannot_hold_is_refused_in_one_line(si
                         lambda device: (2 ** 20, "under a test's limit"))
     with pytest.raises(DataError, match=r"^a stream step over 16 slots: XLA's compiler needs"):
         player.step(np.arange(12), xy[1])
-    assert player._compiling is None and player.state.capacity == 8
+    assert player._slots._programs.compiling is None and player.state.capacity == 8
 
 
 def test_a_capacity_that_fails_to_compile_gets_constant_velocity_while_it_is_needed(
@@ -271,16 +271,16 @@ def test_a_capacity_that_fails_to_compile_gets_constant_velocity_while_it_is_nee
     def failing(*args):
         raise RuntimeError("LLVM ERROR: out of memory\nmore lines")
 
-    monkeypatch.setattr(stream, "_compile", failing)
+    monkeypatch.setattr(stream_programs, "_compile", failing)
     reasons = []
     for t in range(1, 14):
         ids = np.arange(12 if t < 4 else 3)
         reasons.append(player.step(ids, xy[t, ids]).fallback)
         if t == 1:
-            player._finish_compiling()
+            player._slots._finish_compiling()
     # Frame 8's step ends the 9 tracks: the state before it still holds them.
     assert reasons == ["compiling"] + ["error"] * 7 + [None] * 5
-    assert player.state.capacity == 8 and player._failed == {16}
+    assert player.state.capacity == 8 and player._slots._programs.failed == {16}
     errors = [r.getMessage() for r in caplog.records if r.levelno == logging.ERROR]
     assert errors == ["frame 2: compiling the step over 16 slots failed: RuntimeError: LLVM "
                       "ERROR: out of memory; constant velocity predicts while the crowd needs "
@@ -299,14 +299,14 @@ def test_a_failing_step_falls_back_and_the_model_takes_over_after(sim_run, monke
     reference = stream.Stream(sim_run, regions=REGIONS, deadline_s=None)
     expected = [reference.step(np.arange(5), xy[t]) for t in range(10)]
     player = stream.Stream(sim_run, regions=REGIONS, deadline_s=None)
-    call = stream._call
+    call = stream_programs._call
 
     def failing_at_frame_5(step, args):
         if int(args[4]) == 5:
             raise RuntimeError("INTERNAL: a device fault\nmore lines")
         return call(step, args)
 
-    monkeypatch.setattr(stream, "_call", failing_at_frame_5)
+    monkeypatch.setattr(stream_programs, "_call", failing_at_frame_5)
     outputs = [player.step(np.arange(5), xy[t]) for t in range(10)]
     assert [o.fallback for o in outputs] == [None] * 5 + ["error"] + [None] * 4
     np.testing.assert_allclose(outputs[5].futures, constant_velocity(xy[4], xy[5]), atol=1e-5)
@@ -328,17 +328,17 @@ def test_a_step_past_its_deadline_falls_back_until_it_is_done(sim_run, monkeypat
     expected = [reference.step(np.arange(5), xy[t]) for t in range(10)]
     # A deadline far beyond a step of 5 people (milliseconds), reached only by the held one.
     player = stream.Stream(sim_run, regions=REGIONS, deadline_s=1.0)
-    call = stream._call
+    call = stream_programs._call
 
     def held_at_frame_4(step, args):
         if int(args[4]) == 4:
             release.wait()
         return call(step, args)
 
-    monkeypatch.setattr(stream, "_call", held_at_frame_4)
+    monkeypatch.setattr(stream_programs, "_call", held_at_frame_4)
     outputs = [player.step(np.arange(5), xy[t]) for t in range(6)]
     release.set()
-    player._running.result()
+    player._slots._programs.running.result()
     outputs += [player.step(np.arange(5), xy[t]) for t in range(6, 10)]
     assert [o.fallback for o in outputs] == [None] * 4 + ["overrun"] * 2 + [None] * 4
     assert player.overruns == 1
@@ -368,7 +368,7 @@ def test_shrinking_moves_each_tracks_per_slot_state_with_it(sim_run):
                           adaptation=state.adaptation._replace(issued=jax.tree.map(
                               lambda a: mark(a, 1).astype(a.dtype), state.adaptation.issued)))
     player.state = state
-    small = player._resized(8)
+    small = player._slots._resized(8)
     assert small.capacity == 8
     np.testing.assert_array_equal(small.track_ids, [7, 8, 9] + [stream.FREE] * 5)
     slots = np.array([3, 9, 14, 0, 1, 2, 4, 5])          # the tracks', then the free, in order
@@ -380,11 +380,11 @@ def test_shrinking_moves_each_tracks_per_slot_state_with_it(sim_run):
         np.testing.assert_array_equal(np.moveaxis(leaf, 1, 0).reshape(8, -1)[:, 0],
                                       slots.astype(leaf.dtype))
     player.state = small
-    grown = player._resized(16)
+    grown = player._slots._resized(16)
     np.testing.assert_array_equal(grown.track_ids[:3], [7, 8, 9])
     assert (grown.track_ids[3:] == stream.FREE).all() and grown.capacity == 16
     for leaf, before, fresh in zip(*map(jax.tree.leaves, (grown.regions, small.regions,
-                                                          player._fresh_regions))):
+                                                          player._slots._fresh_regions))):
         np.testing.assert_array_equal(leaf[:8], before)
         np.testing.assert_array_equal(leaf[8:], np.repeat(fresh, 8, axis=0))
 

@@ -7,6 +7,7 @@ Constant-velocity streams: nothing to compile but the step, and no model file.""
 from __future__ import annotations
 
 import json
+import operator
 import os
 import re
 
@@ -159,8 +160,9 @@ def test_what_the_checksum_cannot_tell_the_checks_of_the_values_do(saved, tmp_pa
     """A file written with a valid checksum but values no stream holds (by stream_file.write
     itself): a host field out of range, a track id held twice, a capacity no stream grows to."""
     player = saved[3]
-    identity, host = player._identity(), {name: kept.write(getattr(player, name))
-                                          for name, kept in Stream._KEPT.items()}
+    identity = player._identity()
+    host = {name: kept.write(operator.attrgetter(attribute)(player))
+            for name, (attribute, kept) in Stream._KEPT.items()}
     state = player.state
     cases = [
         (state, {**host, "frames": -3}, "host field frames is -3: must be a whole number"),
