@@ -247,7 +247,9 @@ def _trajnet_rows(trajnet: dict) -> list[tuple[str, ...]]:
              number(trajnet["fde"]), number(trajnet["top3_ade"]), number(trajnet["top3_fde"]),
              number(trajnet["topk_ade"]), number(trajnet["topk_fde"]),
              number(trajnet["col_i_percent"], 2), number(trajnet["col_ii_percent"], 2),
-             number(trajnet["log_likelihood"], 2))]
+             number(trajnet["log_likelihood"], 2)),
+            ("constant velocity", str(trajnet["scenes"]), number(trajnet["cv_ade"]),
+             number(trajnet["cv_fde"]), *"-" * 7)]
 
 
 def _split_windows(data_config: DataConfig, split: str, grid: TimeGrid) -> data.WindowSet:

@@ -20,6 +20,9 @@ primary alone; every figure is averaged over the N scenes:
   first 50 samples (scipy's, clipped below at -20), averaged over the steps whose samples
   span a plane: a log-likelihood, higher is better, the opposite sign of gst_jax's KDE NLL.
 
+Beside them, constant velocity's ADE / FDE on the same primaries (their last observed
+displacement repeated), as gst_jax's evaluation gives it on its pedestrians.
+
 Two paths meet (`paths_meet`) when, over their common frames taken in order, the discs of
 radius 0.1 m around them touch at a pair of consecutive frames or half-way between.
 """
@@ -80,13 +83,19 @@ def score_submission(file: PredictionFile, scene_set: SceneSet) -> dict[str, Any
     by_scene = _rows_by_scene(file)
     num_samples = file.num_samples
     sums = {name: 0.0 for name in ("ade", "fde", "top3_ade", "top3_fde", "topk_ade", "topk_fde",
-                                   "col_i", "col_ii", "log_likelihood")}
+                                   "col_i", "col_ii", "log_likelihood", "cv_ade", "cv_fde")}
     short_scenes, identical_scenes = 0, 0
     for index, scene in enumerate(scene_set.scenes):
         frames = scene_set.frames(index)
         truth_paths = _truth_paths(scene_set, index)
         predicted_frames = frames[OBSERVED_ROWS:]
         primary_truth = truth_paths[scene.primary][1][-len(predicted_frames):]
+        observed = truth_paths[scene.primary][1][OBSERVED_ROWS - 2:OBSERVED_ROWS]
+        steps = np.arange(1, len(predicted_frames) + 1)[:, None]
+        constant_velocity = observed[1] + steps * (observed[1] - observed[0])
+        cv_errors = np.linalg.norm(constant_velocity - primary_truth, axis=-1)
+        sums["cv_ade"] += cv_errors.mean()
+        sums["cv_fde"] += cv_errors[-1]
         rows = by_scene.get(scene.scene_id, {})
         primary = _samples(file, scene.scene_id, scene.primary, rows.get(scene.primary, {}),
                            predicted_frames)                                   # (K, P, 2)
@@ -126,6 +135,7 @@ def score_submission(file: PredictionFile, scene_set: SceneSet) -> dict[str, Any
                            if num_samples >= NLL_SAMPLES and not identical_scenes else None),
         "log_likelihood_samples": NLL_SAMPLES,
         "log_likelihood_undefined_scenes": identical_scenes,
+        "cv_ade": mean["cv_ade"], "cv_fde": mean["cv_fde"],
     }
 
 

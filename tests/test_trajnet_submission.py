@@ -172,9 +172,20 @@ def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(c
     assert_same_figures(ours["trajnet"], official, samples=3)
     assert official["col_ii_percent"] > 0                     # not a vacuous match
     # TrajNet++'s top-k FDE is the best-ADE sample's: not the least FDE, gst_jax's minFDE.
-    topk = ours["trajnet"]
-    assert topk["topk_ade"] == topk["top3_ade"] and topk["topk_fde"] == topk["top3_fde"]
+    figures = ours["trajnet"]
+    assert figures["topk_ade"] == figures["top3_ade"] and figures["topk_fde"] == figures["top3_fde"]
     assert ours["pedestrians"] > len(expected) and "aoe" in ours     # per pedestrian, beside
+    # Constant velocity on the same primaries: the truth's rows 7 and 8, the last two observed.
+    cv_ade, cv_fde = [], []
+    for _, paths in trajnet.Reader(str(truth), scene_type="paths").scenes():
+        (x7, y7), (x8, y8) = [(row.x, row.y) for row in paths[0][OBS_LENGTH - 2:OBS_LENGTH]]
+        future = [trajnet.TrackRow(row.frame, row.pedestrian, x8 + t * (x8 - x7),
+                                   y8 + t * (y8 - y7))
+                  for t, row in enumerate(paths[0][OBS_LENGTH:], 1)]
+        cv_ade.append(trajnet.metrics.average_l2(paths[0], future, n_predictions=PRED_LENGTH))
+        cv_fde.append(trajnet.metrics.final_l2(paths[0], future))
+    assert figures["cv_ade"] == pytest.approx(np.mean(cv_ade), abs=1e-6)
+    assert figures["cv_fde"] == pytest.approx(np.mean(cv_fde), abs=1e-6)
 
     # A file whose scenes come in another order, or whose primary lacks a scored frame, is
     # refused as the evaluator would refuse it.
