@@ -177,7 +177,8 @@ def surge(player) -> dict:
             "frames_back_within_1_5x": back, "longest_within_2_periods": bool(
                 ms.max() <= 2e3 * period), "back_within_100_frames": back is not None
             and back <= 100, "fallback_frames": fallbacks, "capacities": capacities,
-            "compiled_s": {str(c): round(s, 2) for c, s in player._compiled.items()},
+            "compiled_s": {str(c): round(s, 2)
+                           for c, s in player._slots._programs.compiled.items()},
             "overruns": player.overruns}
 
 

@@ -83,12 +83,6 @@ def _track_ids(value):
     return set(value)
 
 
-def _seconds(value):
-    if value is not None and (type(value) not in (int, float) or not math.isfinite(value)):
-        raise ValueError("must be a finite number of seconds or null")
-    return None if value is None else float(value)
-
-
 def _write_key(key: jax.Array) -> dict:
     return {"impl": str(jax.random.key_impl(key)),
             "data": np.asarray(jax.random.key_data(key)).tolist()}
@@ -109,7 +103,6 @@ def _read_key(value) -> jax.Array:
 # The host's fields by kind.
 COUNT = Kept(int, _count)                                           # frames, restarts, ...
 TRACK_IDS = Kept(lambda ids: sorted(int(i) for i in ids), _track_ids)   # a set of ids
-SECONDS = Kept(lambda t: None if t is None else float(t), _seconds)     # a time, or None
 KEY = Kept(_write_key, _read_key)                                   # a JAX key
 
 
