@@ -203,6 +203,19 @@ def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(c
         evaluate_prediction_file(tmp_path / "short.ndjson", config, "test")
 
 
+def test_scenes_the_model_cannot_read_row_for_row_are_refused_with_the_fix(tmp_path):
+    # WILDTRACK as --scene reads it, at its own 2 Hz: 0.5 s rows, the model's steps 0.4 s.
+    with pytest.raises(DataError, match=r"wildtrack.ndjson: its rows are 0.5 s apart .* a model "
+                                        r"with --step 0.5, or --data .* --fps 12.5"):
+        load_scenes(DataConfig(scene="wildtrack"), "test", GRID)
+    first_scene = with_scenes(TRAJNET / "lcas.ndjson", [0], tmp_path / "one.ndjson")
+    with pytest.raises(DataError, match=r"one.ndjson: none of its scenes lies within the frames "
+                                        r"of the test split's windows .* --split all"):
+        load_scenes(DataConfig(scene="one", data=str(first_scene)), "test", GRID)
+    assert [scene.scene_id for scene in load_scenes(
+        DataConfig(scene="one", data=str(first_scene)), "all", GRID).scenes] == [0]
+
+
 def _fully_neighboured(source: Path, step: int) -> list[int]:
     """Scenes whose TrajNet++ neighbours (a row before the first predicted one) are all seen
     at the last two observed rows, so that a model predicts every one (docs/MODEL.md 2.3):

@@ -161,6 +161,9 @@ def load_scenes(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()
                         f"{OBSERVED_ROWS} observed rows")
     scenes = tuple(scene for scene in read_scenes(path)
                    if first <= scene.start and scene.end <= last)
+    if not scenes:
+        raise DataError(f"{path}: none of its scenes lies within the frames of the {split} "
+                        f"split's windows ({first}-{last}); --split all predicts every scene")
     windows = tuple(_scene_window(path, scene, tracks, grid) for scene in scenes)
     return SceneSet(str(path), scenes, WindowSet(windows, f"{config.scene}/trajnet/{split}",
                                                  ((str(path), len(windows)),)), tracks)
