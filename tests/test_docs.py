@@ -15,6 +15,7 @@ installs it). A line `... # prints: TEXT` asserts that the block prints TEXT.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -24,6 +25,8 @@ from pathlib import Path
 
 import pytest
 
+from gst_jax import pretrained
+from gst_jax.evaluation import format_table
 from gst_jax.testing.drawn import pixels_near
 
 ROOT = Path(__file__).parents[1]
@@ -369,3 +372,28 @@ def test_the_table_of_shared_flags_says_which_command_takes_which(flags_of):
 def test_the_readme_stays_short():
     """Detail belongs in docs/: the README is the first page a user reads."""
     assert len((ROOT / "README.md").read_text().splitlines()) <= 220
+
+
+def test_the_main_jobs_printout_is_what_evaluate_printed_for_table_is_run():
+    """The README's main job shows lines `evaluate` printed for Table I's run of that command
+    (`format_table` of its committed record, the shipped eth_d), and the spread it quotes is
+    docs/reproducing.md's measured one."""
+    readme = (ROOT / "README.md").read_text()
+    shown = re.search(r"```\n(eth, protocol paper.*?)```", readme, re.S).group(1).splitlines()
+    record = json.loads((ROOT / "results" / "runs" / "eth-paper-d-n1-e200-seed1000.json")
+                        .read_text())
+    printed = format_table(record).splitlines()
+    assert shown[0] == printed[0] and len(shown) >= 4
+    assert all(line in printed for line in shown), shown
+    assert pretrained.load_meta("eth_d")["test_metrics"]["aoe"] == record["aoe"]
+    reproducing = (ROOT / "docs" / "reproducing.md").read_text()
+    assert "| one core | 1.106 /" in reproducing and "| both cores | 1.188 /" in reproducing
+    assert "1.106 on one core, 1.188 on two" in readme
+
+
+def test_the_readme_names_every_shipped_model():
+    readme = (ROOT / "README.md").read_text()
+    section = re.search(r"\n## Pretrained models\n(.*?)\n## ", readme, re.S).group(1)
+    assert [name for name in pretrained.available() if f"`{name}`" not in section] == []
+    numbers = ("fifteen", "sixteen", "seventeen", "eighteen", "nineteen", "twenty")
+    assert f"{numbers[len(pretrained.available()) - 15]} shipped models" in readme

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from gst_jax.config import DataConfig, TimeGrid
-from gst_jax.data.protocols import split_files, split_frames
+from gst_jax.data.protocols import split_files, split_frames, why_no_window
 from gst_jax.data.readers import Tracks, read_tracks
 from gst_jax.data.windows import Window, WindowSet, window_at
 from gst_jax.errors import DataError
@@ -133,7 +133,8 @@ def trajnet_file(config: DataConfig, split: str) -> Path | None:
         return None
     if len(with_scenes) > 1:
         shown = ", ".join(path.name for path in with_scenes[:3])
-        raise DataError(f"{config.scene}: {len(with_scenes)} TrajNet++ files ({shown}...): a "
+        more = ", ..." if len(with_scenes) > 3 else ""
+        raise DataError(f"{config.scene}: {len(with_scenes)} TrajNet++ files ({shown}{more}): a "
                         "TrajNet++ prediction file answers one of them; give one with --data "
                         "FILE, or --windows for the windows of all of them")
     return with_scenes[0]
@@ -153,12 +154,13 @@ def load_scenes(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()
     covered = [(tracks, first, last) for tracks, first, last in split_frames(config, split, grid)
                if tracks.path == str(path)]
     if not covered:
-        raise DataError(f"{path}: the {split} split holds none of its frames")
+        raise DataError(f"{path}: the {split} split holds none of its windows: "
+                        f"{why_no_window(path, config, split, grid)}")
     tracks, first, last = covered[0]
     _check_rows_are_steps(path, tracks, config, grid)
     if grid.obs_len > OBSERVED_ROWS:
         raise DataError(f"the model observes {grid.obs_len} steps; a TrajNet++ scene holds "
-                        f"{OBSERVED_ROWS} observed rows")
+                        f"{OBSERVED_ROWS} observed rows (--windows predicts the split's windows)")
     scenes = tuple(scene for scene in read_scenes(path)
                    if first <= scene.start and scene.end <= last)
     if not scenes:
