@@ -76,6 +76,30 @@ def test_intervals_are_a_bootstrap_over_windows_paired_with_constant_velocity():
     assert (table.windows, table.pedestrians, table.best_model) == (2, 2, model)
 
 
+@pytest.mark.parametrize("model_ade, advice", [
+    ((0.5, 0.5), "Start from pretrained:a (AOE - CV -1.000 m, 95 % -1.500 to -0.500)"),
+    ((0.2, 2.6), "pretrained:a leads constant velocity on these windows, but not beyond the "
+                 "95 % interval (AOE - CV -0.100 m, 95 % -0.800 to +0.600)"),
+    ((2.0, 2.0), "Constant velocity beats every shipped model on these windows")])
+def test_the_advice_follows_the_paired_interval_and_notes_a_bundled_scenes_training(model_ade,
+                                                                                    advice):
+    """Constant velocity 1 and 2 m off on two windows; a model ahead of it on both (its
+    interval below zero), ahead on the mean only (0.2 and 2.6: the resamples of the second
+    window alone put it behind), or behind. On a bundled scene the windows lie in the split its
+    models trained on, and the command fine-tunes with --scene."""
+    sums = {"pretrained:a": (np.array(model_ade), np.array(model_ade)),
+            choose.CONSTANT_VELOCITY: (np.array([1.0, 2.0]), np.array([1.0, 2.0]))}
+    table = choose.ranked_table(TimeGrid(), sums, np.array([1, 1]))
+    bundled = DataConfig(scene="zara1", protocol="paper-val")
+    printed = choose.format_choice(choose.Choice(bundled, 20, (table,), ()))
+    assert advice in printed
+    assert "note: zara1's validation windows lie in its paper train split" in printed
+    assert printed.splitlines()[-1].split()[3:7] == ["--scene", "zara1", "--init",
+                                                       "pretrained:a"]
+    own = choose.format_choice(choose.Choice(OWN, 20, (table,), ()))
+    assert "note:" not in own
+
+
 def test_the_command_prints_the_table_and_a_fine_tuning_command_train_accepts(capsys):
     main(["choose", "--data", str(SAMPLE), "--fps", "10", "--units", "cm", "--models",
           "hotel_d, crowdnav_sim", "--samples", str(SAMPLES)])

@@ -298,5 +298,9 @@ def _advice(config: DataConfig, table: Table) -> list[str]:
         return [f"Constant velocity beats every shipped model on these windows; the best "
                 f"model, {best.name} ({difference}), is where a fine-tuning would start; in "
                 "docs/own-data.md's measurements fine-tuning did not close such a gap:", command]
+    if best.minus_cv_interval[1] >= 0:       # ahead, but these windows cannot tell them apart
+        return [f"{best.name} leads constant velocity on these windows, but not beyond the "
+                f"95 % interval ({difference}): more windows would tell them apart. To "
+                "fine-tune it on your data (the epoch kept is chosen on these windows):", command]
     return [f"Start from {best.name} ({difference}); to fine-tune it on your data (the epoch "
             "kept is chosen on these validation windows):", command]
