@@ -29,6 +29,19 @@ program loaded from the persistent cache counts as one).
   (target: at most 2), the frames after the surge until the median of 10 steps is back within
   1.5x of before (target: within 100), the frames of constant velocity by reason and the
   capacities in turn.
+- tracker: a tracker's feeds at other rates than the model's (issue 92's targets), each
+  `Stream` with the default gate and `deadline_s=None` (every frame waits for the model: these
+  figures are not timings), 60 s of 20 straight walkers at 0.5-1.5 m/s. (1) A 5 Hz tracker with
+  `step(time=)` against a 4 Hz feed without times: the largest distance between their
+  predictions at the same model steps (target: within 0.05 m). (2) A 10 Hz tracker, stamps
+  +-20 ms off the 0.1 s grid, 3 % of frames dropped: the frames refused (target 0) and the
+  truth coverage, the fraction of predicted steps whose true position (the walks' at that
+  step's time) lies within the radius issued (target within 0.02 of 0.9; the stream's own
+  coverage, against the resampled detections, beside it); again with positions off by 3 cm
+  (normal, per axis; the model's own errors already make the discs 0.7 m wide). (3) A
+  3 m/s jogger and a 6 m/s cyclist among the walkers, a 4 Hz feed and the 10 Hz one: the
+  fraction of frames from their second detection on (with times: from the frame that reaches
+  the model's second step) in which they are predicted (target 1.0).
 
 The tracker loop: 400 frames; people enter at the edges of a 16 m square at random times
 (about 50 at once at the peak), walk straight at 0.5-1.5 m/s and leave after 10-60 s. The
@@ -57,11 +70,14 @@ import time
 
 import numpy as np
 
-PHASES = ("cold", "restart", "no-warm-up", "no-rule", "surge")
+PHASES = ("cold", "restart", "no-warm-up", "no-rule", "surge", "tracker")
 FRAMES = 400
 STEP_S = 0.25
 # The surge's frames: 40 walkers, 120, 40 again.
 SURGE = (60, 120, 150)
+# The tracker phase's feeds: seconds, walkers, the 10 Hz tracker's jitter (s), dropped frames
+# and measurement noise (m, per axis).
+FEED_S, WALKERS, JITTER_S, DROPPED, NOISE_M = 60.0, 20, 0.02, 0.03, 0.03
 
 
 def crowd(frames: int = FRAMES, seed: int = 0) -> list[tuple]:
@@ -182,6 +198,152 @@ def surge(player) -> dict:
             "overruns": player.overruns}
 
 
+def walks(count: int, seed: int, fast: tuple[float, ...] = ()):
+    """`count` people walking straight across a 16 m square at 0.5-1.5 m/s, then one at each
+    speed of `fast` (m/s): their exact positions (N, 2) at any time t (s)."""
+    rng = np.random.default_rng(seed)
+    speed = np.concatenate([rng.uniform(0.5, 1.5, count), fast])
+    heading = rng.uniform(-np.pi, np.pi, len(speed))
+    start = rng.uniform(-8, 8, (len(speed), 2))
+    velocity = speed[:, None] * np.stack([np.cos(heading), np.sin(heading)], axis=1)
+    return lambda t: start + velocity * t
+
+
+def feed(positions_at, rate_hz: float, seed: int, jitter_s: float = 0.0, dropped: float = 0.0,
+         noise_m: float = 0.0) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """A tracker's frames over FEED_S seconds at `rate_hz`: (time, ids (N,), positions (N, 2)),
+    each frame stamped with the time it was measured at, up to `jitter_s` off its rate's grid,
+    a fraction `dropped` of the frames (never the first) left out, positions off by normal
+    noise of `noise_m` per axis."""
+    rng = np.random.default_rng(seed)
+    count = int(round(FEED_S * rate_hz)) + 1
+    times = np.arange(count) / rate_hz + rng.uniform(-jitter_s, jitter_s, count)
+    kept = (rng.random(count) >= dropped) | (np.arange(count) == 0)
+    frames = []
+    for t in times[kept]:
+        xy = positions_at(t)
+        frames.append((float(t), np.arange(len(xy)), xy + rng.normal(0, noise_m, xy.shape)))
+    return frames
+
+
+def resampled(make_stream) -> dict:
+    """(1) A 5 Hz tracker with times against a 4 Hz feed of the same walkers without: the
+    largest distance between their predictions (and radii) at the same model steps."""
+    positions_at = walks(WALKERS, seed=3)
+    reference = make_stream()
+    expected = [reference.step(ids, xy) for _, ids, xy in feed(positions_at, 4.0, seed=0)]
+    player = make_stream()
+    distance, radius, steps, same_ids = 0.0, 0.0, 0, True
+    for t, ids, xy in feed(positions_at, 5.0, seed=0):
+        out = player.step(ids, xy, time=t)
+        if out.repeated:
+            continue
+        other = expected[round(out.time / player.grid.step_s)]
+        same_ids &= sorted(out.ids.tolist()) == sorted(other.ids.tolist())
+        mine, theirs = np.argsort(out.ids), np.argsort(other.ids)
+        if len(mine) and len(mine) == len(theirs):
+            distance = max(distance, float(np.linalg.norm(
+                out.futures[mine] - other.futures[theirs], axis=-1).max()))
+            radius = max(radius, float(np.abs(out.radii[mine] - other.radii[theirs]).max()))
+        steps += 1
+    return {"max_distance_m": distance, "max_radius_difference_m": radius,
+            "steps_compared": steps, "same_ids": bool(same_ids)}
+
+
+def jittered(make_stream, noise_m: float) -> dict:
+    """(2) A 10 Hz tracker, jittered, dropping frames, its positions off by `noise_m`: the
+    frames refused and the discs' coverage of the walkers' true positions at the predicted
+    steps' times (pooled, per horizon step, and per 10 s of the feed), with the stream's own
+    (its delayed scores, against the resampled detections) beside it."""
+    from gst_jax.errors import DataError
+
+    positions_at = walks(WALKERS, seed=4)
+    frames = feed(positions_at, 10.0, seed=1, jitter_s=JITTER_S, dropped=DROPPED,
+                  noise_m=noise_m)
+    player = make_stream()
+    step_s, horizon = player.grid.step_s, player.grid.pred_len
+    refused, covered, predicted = 0, np.zeros(horizon), np.zeros(horizon)
+    own_covered, own_scored, radius = 0, 0, []
+    by_10_s = np.zeros((int(FEED_S // 10) + 1, 2))             # covered, predicted
+    for t, ids, xy in frames:
+        try:
+            out = player.step(ids, xy, time=t)
+        except DataError:
+            refused += 1
+            continue
+        if out.repeated or not len(out.ids):
+            continue
+        truth = np.stack([positions_at(out.time + (k + 1) * step_s)[out.ids]
+                          for k in range(horizon)], axis=1)                   # (L, P, 2)
+        hit = np.linalg.norm(out.futures - truth, axis=-1) <= out.radii        # (L, P)
+        covered += hit.sum(axis=0)
+        by_10_s[int((out.time - frames[0][0]) // 10)] += hit.sum(), hit.size
+        predicted += len(out.ids)
+        mask = out.delayed.mask
+        own_covered += int((mask & (out.delayed.scores <= out.delayed.issued)).sum())
+        own_scored += int(mask.sum())
+        radius.extend(out.radii[:, -1].tolist())
+    per_step = covered / np.maximum(predicted, 1)
+    return {"frames": len(frames), "frames_dropped": int(round(FEED_S * 10)) + 1 - len(frames),
+            "refused": refused, "truth_coverage": float(covered.sum() / predicted.sum()),
+            "truth_coverage_min": float(per_step.min()),
+            "truth_coverage_max": float(per_step.max()), "predicted_steps": int(predicted.sum()),
+            "truth_coverage_by_10_s": [round(float(c / max(n, 1)), 4) for c, n in by_10_s
+                                       if n],
+            "own_coverage": own_covered / max(own_scored, 1),
+            "last_step_radius_m": float(np.mean(radius))}
+
+
+def fast_movers(make_stream) -> dict:
+    """(3) A 3 m/s jogger and a 6 m/s cyclist among the walkers, a 4 Hz feed without times and
+    the jittered 10 Hz one with (3 cm noise): the fraction of frames from their second
+    detection on (with times, from the frame that reaches the model's second step) in which
+    each is predicted."""
+    positions_at = walks(WALKERS, seed=5, fast=(3.0, 6.0))
+    jogger, cyclist = WALKERS, WALKERS + 1
+    result = {}
+    for name, frames, timed in (
+            ("4_hz", feed(positions_at, 4.0, seed=2), False),
+            ("10_hz", feed(positions_at, 10.0, seed=3, jitter_s=JITTER_S, dropped=DROPPED,
+                           noise_m=NOISE_M), True)):
+        player = make_stream()
+        counted, seen = 0, {jogger: 0, cyclist: 0}
+        for n, (t, ids, xy) in enumerate(frames):
+            out = player.step(ids, xy, time=t if timed else None)
+            if (out.time < frames[0][0] + player.grid.step_s - 1e-9) if timed else n < 1:
+                continue
+            counted += 1
+            for person in seen:
+                seen[person] += person in out.ids
+        result[name] = {"frames": counted, "jogger": seen[jogger] / counted,
+                        "cyclist": seen[cyclist] / counted, "restarts": player.restarts}
+    return result
+
+
+def tracker_feeds(make_stream) -> dict:
+    """The tracker phase's three measurements, each figure with its target and whether it met
+    it (`checks`: figure, value, target, pass)."""
+    load = os.getloadavg()
+    same, fast = resampled(make_stream), fast_movers(make_stream)
+    exact, noisy = jittered(make_stream, 0.0), jittered(make_stream, NOISE_M)
+    lowest = min(fast[feed][who] for feed in fast for who in ("jogger", "cyclist"))
+    checks = [
+        ("5 Hz with time= against a 4 Hz feed: largest distance between predictions (m)",
+         same["max_distance_m"], "<= 0.05", same["max_distance_m"] <= 0.05),
+        ("10 Hz, +-20 ms, 3 % dropped: frames refused", exact["refused"] + noisy["refused"],
+         "0", exact["refused"] + noisy["refused"] == 0),
+        ("10 Hz, +-20 ms, 3 % dropped: truth coverage at alpha 0.1", exact["truth_coverage"],
+         "0.88-0.92", abs(exact["truth_coverage"] - 0.9) <= 0.02),
+        ("the same, positions off by 3 cm: truth coverage", noisy["truth_coverage"],
+         "0.88-0.92", abs(noisy["truth_coverage"] - 0.9) <= 0.02),
+        ("3 m/s jogger, 6 m/s cyclist: lowest fraction of frames predicted from the second "
+         "detection on (4 Hz and 10 Hz feeds)", lowest, "1.0", lowest == 1.0)]
+    return {"load_average": [round(x, 2) for x in load], "resampled_5_hz": same,
+            "jittered_10_hz": exact, "jittered_10_hz_noisy": noisy, "fast_movers": fast,
+            "checks": [dict(figure=f, value=v, target=t, passed=bool(ok))
+                       for f, v, t, ok in checks]}
+
+
 def tracker_loop(player, count_compiles) -> dict:
     seconds, radius = [], []
     horizon = player.model.config.pred_len
@@ -231,6 +393,10 @@ def phase(name: str, model: str, cache: str) -> dict:
         result.update(first_step_s=time.perf_counter() - building, first_ids=len(out.ids),
                       first_prediction_at=time.time())
         player = Stream(run, regions=regions, non_finite="undetected")
+    if name == "tracker":
+        result["feeds"] = tracker_feeds(lambda: Stream(
+            run, regions=regions, compilation_cache=cache, deadline_s=None))
+        return result
     if name == "surge":
         warming = time.perf_counter()
         result["capacities"] = list(player.warm_up(40))
@@ -271,7 +437,8 @@ def main() -> None:
     cache = args.cache or os.path.join(scratch, "cache")
     rows = []
     for name in args.phases:
-        folder = os.path.join(scratch, name) if name in ("no-warm-up", "surge") else cache
+        folder = (os.path.join(scratch, name) if name in ("no-warm-up", "surge", "tracker")
+                  else cache)
         spawned = time.time()
         child = subprocess.run([sys.executable, __file__, "--child", name, "--model",
                                 args.model, "--cache", folder], capture_output=True, text=True)
@@ -281,6 +448,9 @@ def main() -> None:
         if "first_prediction_at" in result:      # from the process's start, imports included
             result["since_start_s"] = result.pop("first_prediction_at") - spawned
         print(f"{name}: {json.dumps(result)}", flush=True)
+        for check in result.get("feeds", {}).get("checks", []):
+            print(f"  {check['figure']}: {check['value']:.4g} (target {check['target']}): "
+                  f"{'PASS' if check['passed'] else 'FAIL'}", flush=True)
         rows.append(record("robot_loop", phase=name, model=args.model, note=args.note,
                            **result))
     print_table([{"phase": r["phase"], **r.get("tracker", {}),
