@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from gst_jax.data.readers import MAX_INTERPOLATED_STEPS
 from gst_jax.errors import DataError
 
 if TYPE_CHECKING:
@@ -48,10 +49,10 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger("gst_jax.stream")
 
-# Two raw detections of a track at most this many model steps apart are interpolated
-# between: a tracker at half the model's rate, or one that missed a few frames at a higher
-# one. Over a longer gap a straight line would invent the path the model is to predict.
-MAX_INTERPOLATED_STEPS = 2.0
+# MAX_INTERPOLATED_STEPS (the data readers' rule, the same for a stream): two raw detections
+# of a track at most this many model steps apart are interpolated between: a tracker at half
+# the model's rate, or one that missed a few frames at a higher one. Over a longer gap a
+# straight line would invent the path the model is to predict.
 # A detection this close to a tick (seconds) is at the tick: timestamps' float rounding.
 TICK_S = 1e-6
 
