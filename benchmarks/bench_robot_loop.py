@@ -31,9 +31,13 @@ program loaded from the persistent cache counts as one).
   capacities in turn.
 - tracker: a tracker's feeds at other rates than the model's (issue 92's targets), each
   `Stream` with the default gate and `deadline_s=None` (every frame waits for the model: these
-  figures are not timings), 60 s of 20 straight walkers at 0.5-1.5 m/s. (1) A 5 Hz tracker with
-  `step(time=)` against a 4 Hz feed without times: the largest distance between their
-  predictions at the same model steps (target: within 0.05 m). (2) A 10 Hz tracker, stamps
+  figures are not timings); (1) and (3) over 60 s of 20 straight walkers at 0.5-1.5 m/s.
+  (1) A 5 Hz tracker with `step(time=)` against a 4 Hz feed without times: the largest
+  distance between their predictions at the same model steps (target: within 0.05 m).
+  (2) 120 s of 40 wandering walkers (a straight walker's error is the same at every step, so
+  pooled discs cover whole walkers; a person's error varies over time): heading turning at a
+  rate redrawn every 2-4 s from N(0, 0.3 rad/s), speed 0.5-1.5 m/s varying by up to 10 %,
+  exact paths on a 0.01 s grid; a 10 Hz tracker, stamps
   +-20 ms off the 0.1 s grid, 3 % of frames dropped: the frames refused (target 0) and the
   truth coverage, the fraction of predicted steps whose true position (the walks' at that
   step's time) lies within the radius issued (target within 0.02 of 0.9; the stream's own
@@ -78,6 +82,9 @@ SURGE = (60, 120, 150)
 # The tracker phase's feeds: seconds, walkers, the 10 Hz tracker's jitter (s), dropped frames
 # and measurement noise (m, per axis).
 FEED_S, WALKERS, JITTER_S, DROPPED, NOISE_M = 60.0, 20, 0.02, 0.03, 0.03
+# The jittered feed's wandering walkers: seconds, walkers, the turn rate's spread (rad/s),
+# redrawn every 2-4 s, and the time resolution of their exact paths (s).
+WANDER_S, WANDERERS, TURN_RAD_S, WANDER_DT_S = 120.0, 40, 0.3, 0.01
 
 
 def crowd(frames: int = FRAMES, seed: int = 0) -> list[tuple]:
@@ -209,14 +216,41 @@ def walks(count: int, seed: int, fast: tuple[float, ...] = ()):
     return lambda t: start + velocity * t
 
 
+def wandering(count: int, seed: int, seconds: float):
+    """`count` people whose heading turns at a rate redrawn every 2-4 s from N(0, TURN_RAD_S)
+    and whose speed (0.5-1.5 m/s each) varies by up to 10 % over 5-15 s: their exact positions
+    (N, 2) at any time t in [-1, seconds + 10] (s), from paths integrated every WANDER_DT_S
+    and interpolated between (the tracker's frames and the model's steps alike)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(-1.0, seconds + 10.0 + WANDER_DT_S, WANDER_DT_S)            # (T,)
+    turn = np.empty((count, len(t)))
+    for person in range(count):
+        changes = t[0] + np.cumsum(rng.uniform(2.0, 4.0, int(len(t) * WANDER_DT_S / 2) + 2))
+        rates = rng.normal(0.0, TURN_RAD_S, len(changes) + 1)
+        turn[person] = rates[np.searchsorted(changes, t)]
+    heading = rng.uniform(-np.pi, np.pi, (count, 1)) + np.cumsum(turn, axis=1) * WANDER_DT_S
+    period, phase = rng.uniform(5.0, 15.0, (count, 1)), rng.uniform(0, 2 * np.pi, (count, 1))
+    speed = rng.uniform(0.5, 1.5, (count, 1)) * (1 + 0.1 * np.sin(2 * np.pi * t / period
+                                                                  + phase))
+    step = speed[..., None] * np.stack([np.cos(heading), np.sin(heading)], -1) * WANDER_DT_S
+    path = np.concatenate([np.zeros((count, 1, 2)), np.cumsum(step[:, :-1], axis=1)], axis=1)
+    path += rng.uniform(-8, 8, (count, 1, 2))                                   # (N, T, 2)
+
+    def positions_at(when: float) -> np.ndarray:
+        low, share = divmod((when - t[0]) / WANDER_DT_S, 1.0)
+        return (1 - share) * path[:, int(low)] + share * path[:, int(low) + 1]
+    return positions_at
+
+
 def feed(positions_at, rate_hz: float, seed: int, jitter_s: float = 0.0, dropped: float = 0.0,
-         noise_m: float = 0.0) -> list[tuple[float, np.ndarray, np.ndarray]]:
-    """A tracker's frames over FEED_S seconds at `rate_hz`: (time, ids (N,), positions (N, 2)),
+         noise_m: float = 0.0, seconds: float = FEED_S
+         ) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """A tracker's frames over `seconds` at `rate_hz`: (time, ids (N,), positions (N, 2)),
     each frame stamped with the time it was measured at, up to `jitter_s` off its rate's grid,
     a fraction `dropped` of the frames (never the first) left out, positions off by normal
     noise of `noise_m` per axis."""
     rng = np.random.default_rng(seed)
-    count = int(round(FEED_S * rate_hz)) + 1
+    count = int(round(seconds * rate_hz)) + 1
     times = np.arange(count) / rate_hz + rng.uniform(-jitter_s, jitter_s, count)
     kept = (rng.random(count) >= dropped) | (np.arange(count) == 0)
     frames = []
@@ -251,20 +285,21 @@ def resampled(make_stream) -> dict:
 
 
 def jittered(make_stream, noise_m: float) -> dict:
-    """(2) A 10 Hz tracker, jittered, dropping frames, its positions off by `noise_m`: the
-    frames refused and the discs' coverage of the walkers' true positions at the predicted
+    """(2) A 10 Hz tracker of WANDERERS wandering walkers for WANDER_S, jittered, dropping
+    frames, its positions off by `noise_m`: the frames refused and the discs' coverage of the
+    walkers' true positions at the predicted
     steps' times (pooled, per horizon step, and per 10 s of the feed), with the stream's own
     (its delayed scores, against the resampled detections) beside it."""
     from gst_jax.errors import DataError
 
-    positions_at = walks(WALKERS, seed=4)
+    positions_at = wandering(WANDERERS, seed=4, seconds=WANDER_S)
     frames = feed(positions_at, 10.0, seed=1, jitter_s=JITTER_S, dropped=DROPPED,
-                  noise_m=noise_m)
+                  noise_m=noise_m, seconds=WANDER_S)
     player = make_stream()
     step_s, horizon = player.grid.step_s, player.grid.pred_len
     refused, covered, predicted = 0, np.zeros(horizon), np.zeros(horizon)
     own_covered, own_scored, radius = 0, 0, []
-    by_10_s = np.zeros((int(FEED_S // 10) + 1, 2))             # covered, predicted
+    by_10_s = np.zeros((int(WANDER_S // 10) + 1, 2))             # covered, predicted
     for t, ids, xy in frames:
         try:
             out = player.step(ids, xy, time=t)
@@ -284,8 +319,9 @@ def jittered(make_stream, noise_m: float) -> dict:
         own_scored += int(mask.sum())
         radius.extend(out.radii[:, -1].tolist())
     per_step = covered / np.maximum(predicted, 1)
-    return {"frames": len(frames), "frames_dropped": int(round(FEED_S * 10)) + 1 - len(frames),
+    return {"frames": len(frames), "frames_dropped": int(round(WANDER_S * 10)) + 1 - len(frames),
             "refused": refused, "truth_coverage": float(covered.sum() / predicted.sum()),
+            "truth_coverage_per_step": [round(float(c), 4) for c in per_step],
             "truth_coverage_min": float(per_step.min()),
             "truth_coverage_max": float(per_step.max()), "predicted_steps": int(predicted.sum()),
             "truth_coverage_by_10_s": [round(float(c / max(n, 1)), 4) for c, n in by_10_s
@@ -330,8 +366,8 @@ def tracker_feeds(make_stream) -> dict:
     checks = [
         ("5 Hz with time= against a 4 Hz feed: largest distance between predictions (m)",
          same["max_distance_m"], "<= 0.05", same["max_distance_m"] <= 0.05),
-        ("10 Hz, +-20 ms, 3 % dropped: frames refused", exact["refused"] + noisy["refused"],
-         "0", exact["refused"] + noisy["refused"] == 0),
+        ("10 Hz, +-20 ms, 3 % dropped, 40 wandering walkers: frames refused",
+         exact["refused"] + noisy["refused"], "0", exact["refused"] + noisy["refused"] == 0),
         ("10 Hz, +-20 ms, 3 % dropped: truth coverage at alpha 0.1", exact["truth_coverage"],
          "0.88-0.92", abs(exact["truth_coverage"] - 0.9) <= 0.02),
         ("the same, positions off by 3 cm: truth coverage", noisy["truth_coverage"],
