@@ -2,6 +2,10 @@
 
 Every problem with an input file is reported as a `DataError` naming the file, the line and
 what is wrong, before any array is built: a bad file never turns into a silently wrong window.
+
+One job, though over 400 lines: a file's rows to tracks at the model's rate, its formats (text
+with or without a header, TrajNet++ ndjson) and its rate (every k-th row, or interpolated)
+read by the same checks, so that every format is refused for the same faults in the same words.
 """
 
 from __future__ import annotations
