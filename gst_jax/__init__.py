@@ -18,7 +18,9 @@ Files in and out:
 - trajectories: `data.readers` reads text (`frame ped x y`, a tracker's CSV) and TrajNet++
   ndjson into `data.Tracks`, and puts them on the model's steps (`data.readers.to_model_rate`);
   `data.windows` cuts them into scene windows and `data.protocols` splits those;
-- predictions: `prediction_files` writes them as TrajNet++ ndjson and reads them back;
+- predictions: `prediction_files` writes them as TrajNet++ ndjson and reads them back; a
+  TrajNet++ file's own scenes (`data.trajnet`) are scored as its benchmark does
+  (`trajnet_metrics`);
 - models: `model.weights` (`model.safetensors` and `config.json`, the shipped models'
   format), `interop` (the authors' PyTorch weights), `io.workdir` and `io.checkpoints` (a
   training run's folder and its checkpoints).
@@ -46,7 +48,8 @@ _PUBLIC = {
 __all__ = sorted(_PUBLIC) + ["config", "conformal", "coverage", "crowdnav", "data", "errors",
                              "evaluation", "graph", "gumbel", "interop", "io", "losses",
                              "metrics", "model", "predict", "prediction_files", "pretrained",
-                             "rollout", "runs", "simulate", "stream", "training"]
+                             "rollout", "runs", "simulate", "stream", "training",
+                             "trajnet_metrics"]
 
 
 def _bind_for_pdoc() -> None:

@@ -38,6 +38,8 @@ from gst_jax.errors import DataError
 from gst_jax.metrics import KDE_LOG_DENSITY_FLOOR, kde_log_densities_where_defined
 from gst_jax.prediction_files import PredictionFile
 
+__all__ = ["NLL_SAMPLES", "TOP_K", "log_likelihood", "paths_meet", "score_submission"]
+
 # TrajNet++'s evaluator: top-k over samples 0 to TOP_K - 1 (its "Top3"), NLL over the first
 # NLL_SAMPLES samples (it passes n_samples=50; trajnetplusplustools' own default is 100).
 TOP_K = 3

@@ -1,5 +1,6 @@
 """numpy-only data layer: readers, windowing, protocols, batching. Never imports jax."""
 
+from gst_jax.data import trajnet  # a page of its own in the API reference
 from gst_jax.data.batch import SceneBatch, node_mask_from_positions
 from gst_jax.data.batching import (
                                    BUCKETS,
@@ -32,5 +33,5 @@ __all__ = [
     "make_batch", "no_windows_message", "node_mask_from_positions", "pack_step", "pad_windows",
     "read_tracks", "split_frames", "training_batches",
     # The modules, pages of their own in the API reference.
-    "readers", "windows", "protocols",
+    "readers", "windows", "protocols", "trajnet",
 ]

@@ -32,6 +32,8 @@ from gst_jax.data.readers import Tracks, read_tracks
 from gst_jax.data.windows import Window, WindowSet, window_at
 from gst_jax.errors import DataError
 
+__all__ = ["OBSERVED_ROWS", "Scene", "SceneSet", "load_scenes", "read_scenes", "trajnet_file"]
+
 # TrajNet++'s observation: the rows of a scene before those it scores (its evaluator's
 # obs_length); the model predicts the rest.
 OBSERVED_ROWS = 9
