@@ -46,7 +46,7 @@ import safetensors.numpy
 
 from gst_jax.data import bucket_size
 from gst_jax.errors import DataError
-from gst_jax.model.weights import flatten, flatten_abstract
+from gst_jax.model.weights import flatten, flatten_abstract, layout_problems
 from gst_jax.stream_core import FREE, StreamState
 
 FORMAT = "gst_jax.stream/1"
@@ -257,12 +257,7 @@ def _read(file, path: Path, identity: dict, like: Callable[[int], StreamState]
         tensors = safetensors.numpy.load(prefix + header_bytes + data)
     except Exception as error:  # safetensors raises its own error type on a malformed file
         raise refuse(f"not a safetensors file ({error})") from None
-    problems = [f"no {name}" for name in expected if name not in tensors]
-    problems += [f"unexpected {name}" for name in tensors if name not in expected]
-    problems += [f"{name} is {tensors[name].dtype}{list(tensors[name].shape)}, expected "
-                 f"{dtype}{list(shape)}" for name, (shape, dtype) in expected.items()
-                 if name in tensors and (tensors[name].shape, tensors[name].dtype)
-                 != (shape, dtype)]
+    problems = layout_problems(tensors, expected)
     if problems:
         raise refuse(f"not the state of this stream: {'; '.join(problems[:3])}")
     abstract = like(capacity)

@@ -62,7 +62,7 @@ from gst_jax.model.gst import init_params
 from gst_jax.model.heads import HEADS
 
 __all__ = ["Weights", "config_digest", "expected_layout", "flatten", "folder_of", "is_weights",
-           "load", "read_config", "save", "shipped", "shipped_folder"]
+           "layout_problems", "load", "read_config", "save", "shipped", "shipped_folder"]
 
 FORMAT = "gst_jax.weights/1"
 WEIGHTS_FILE = "model.safetensors"
@@ -392,15 +392,22 @@ def _check_finite(tensors: Mapping[str, np.ndarray], what: str):
                            f"{list(where)}): parameters must be finite")
 
 
-def _check_layout(tensors: Mapping[str, np.ndarray], model_config: ModelConfig, what: str):
-    """Refuse, in one line, tensors that are not exactly the parameters of model_config."""
-    expected = expected_layout(model_config)
+def layout_problems(tensors: Mapping[str, np.ndarray],
+                    expected: Mapping[str, tuple[tuple[int, ...], Any]]) -> list[str]:
+    """What keeps `tensors` from being exactly `expected` (name -> (shape, dtype)): tensors
+    missing, unexpected, or of another shape or dtype, one phrase each (none: they are)."""
     problems = [f"no {name}" for name in expected if name not in tensors]
     problems += [f"unexpected {name}" for name in tensors if name not in expected]
     problems += [f"{name} is {tensors[name].dtype}{list(tensors[name].shape)}, expected "
                  f"{dtype}{list(shape)}" for name, (shape, dtype) in expected.items()
                  if name in tensors and (tensors[name].shape, tensors[name].dtype)
                  != (shape, dtype)]
+    return problems
+
+
+def _check_layout(tensors: Mapping[str, np.ndarray], model_config: ModelConfig, what: str):
+    """Refuse, in one line, tensors that are not exactly the parameters of model_config."""
+    problems = layout_problems(tensors, expected_layout(model_config))
     if problems:
         more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
         raise RunError(f"{what}: not the parameters of its model config: "
