@@ -81,7 +81,8 @@ ISSUE90 = [configuration for scenario in (NAMED["speed"], NAMED["policy"], DEFAU
     for scenario in (NAMED["speed"], NAMED["policy"], DEFAULT)
     for planner, regions, adaptation in [("mpc", "none", "none"), ("mpc", "dtaci", "none"),
                                          ("mpc", "none", "rls-blend"),
-                                         ("mpc", "decision", "none")]]
+                                         ("mpc", "decision", "none"),
+                                         ("mpc", "none", "speed-scale")]]
 # CrowdNav++'s released test logs (commit 3907731, trained_models/*/test/*.log, line 9; 500
 # episodes each; path length over all episodes, navigation time over the successes).
 CROWDNAV = [
@@ -224,7 +225,8 @@ def paired_table(rows: list[dict]) -> list[str]:
     lines = ["| humans | setting | success | minus CV's best (95 % paired interval) | McNemar p "
              "| share of the truth's margin |", "|---" * 6 + "|"]
     for scenario in NAMED.values():
-        # The truth's success is its margin's end; its episodes need not be kept.
+        # The truth's success is its margin's end (its rows, with their episodes, are
+        # listed as settings: the margin itself paired).
         truths = [r for r in rows if scenario_of(r) == scenario and r["predictor"] == "truth"]
         cell = [r for r in rows if scenario_of(r) == scenario and "per_episode" in r]
         cvs = [r for r in cell if r["predictor"] == "cv"]
