@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 from pathlib import Path
 from typing import Any, Literal, Mapping
 
@@ -52,7 +51,6 @@ from gst_jax.data import SceneBatch
 from gst_jax.errors import DataError
 from gst_jax.interop import (
     check_state_dict,
-    expected_state_dict,
     load_state_dict,
     params_from_torch,
 )
@@ -85,12 +83,14 @@ ARGS_FIELDS: dict[str, weights.Check] = {
 MODEL_ARGS = ("temporal", "embedding_size", "spatial_num_layers", "spatial_num_heads",
               "lstm_hidden_size", "obs_seq_len", "pred_seq_len", "ghost")
 CHECKPOINT_ARGS = MODEL_ARGS + ("num_epochs", "batch_size", "lr", "init_temp", "random_seed")
-# What a checkpoint's .pt may allocate, in its model's parameters (by its args, as float64,
-# the widest dtype taken): the parameters, Adam's two moments and a spare, each read as stored
-# and copied as an array; and 1 MiB for its pickle and metrics. CrowdNav++'s make 1.7 MB of
-# the 5.4 MB this allows.
-PT_PARAMETER_COPIES = 8
-PT_OTHER_BYTES = 2**20
+# What reading a checkpoint's .pt may allocate: never more than PT_MAX_BYTES, nor than
+# PT_DECLARED_COPIES times the bytes its zip entries declare (each read as stored, each tensor
+# copied as an array: about twice them; four allow a tensor saved twice over one storage). Not
+# by its args.pickle: the same folder supplies both, and in-range args (64 layers 4096 wide)
+# would allow gigabytes. CrowdNav++'s checkpoints (parameters, Adam's moments, metrics) make
+# 1.7 MB; the budget is 150 times that.
+PT_MAX_BYTES = 2**28
+PT_DECLARED_COPIES = 4
 
 
 def checked_args(args: Any, where: str = "args", required=MODEL_ARGS) -> Mapping[str, Any]:
@@ -284,21 +284,17 @@ def load(load_path: str | Path, *, step_s: float = CROWDNAV_STEP_S,
 
     A checkpoint folder is checked before it is used, each refusal one line naming the file
     and the field or tensor (`DataError`): args.pickle's fields in their ranges
-    (`checked_args`), the .pt read within what its model's shapes allow
-    (PT_PARAMETER_COPIES times its parameters' bytes, and PT_OTHER_BYTES: a tensor or a zip
-    entry beyond it is refused before it is allocated), and its state dict holding every
-    tensor of that model, of its shape, finite (`gst_jax.interop.check_state_dict`)."""
+    (`checked_args`), the .pt read within a fixed budget and what its own zip entries declare
+    (PT_MAX_BYTES, PT_DECLARED_COPIES: a tensor or a zip entry beyond it is refused before it
+    is allocated), and its state dict holding every tensor of that model, of its shape, finite
+    (`gst_jax.interop.check_state_dict`)."""
     if weights.is_weights(load_path):
         loaded = weights.load(load_path)
         return _predictor(str(load_path), loaded.model_config, loaded.params, non_finite)
     args = checkpoint_args(load_path)
     args_path = Path(load_path) / "checkpoint" / "args.pickle"
-    config = model_config(args, step_s, str(args_path))
-    # Reading the .pt may allocate what its model's shapes allow (PT_PARAMETER_COPIES).
-    parameter_bytes = 8 * sum(math.prod(shape) for shape in expected_state_dict(config).values())
-    bound = PT_PARAMETER_COPIES * parameter_bytes + PT_OTHER_BYTES
-    reason = (f"{PT_PARAMETER_COPIES} times the {parameter_bytes} bytes of its model's "
-              f"parameters as float64 by {args_path.name}, and 1 MiB")
+    model_config(args, step_s, str(args_path))       # refused before the .pt is read
     pt = args_path.parent / f"epoch_{args['num_epochs']}.pt"
-    state_dict = load_state_dict(pt, bound, reason)
+    state_dict = load_state_dict(pt, PT_MAX_BYTES, "gst_jax.crowdnav.PT_MAX_BYTES",
+                                 PT_DECLARED_COPIES)
     return _from_checkpoint(state_dict, args, step_s, non_finite, str(pt), str(args_path))

@@ -33,13 +33,15 @@ GST_UPDATED_NODE_EMBEDDING = "gumbel_social_transformer.node_embedding."
 
 
 def load_state_dict(source: str | Path | Mapping[str, Any], max_bytes: int = MAX_BYTES,
-                    reason: str = "gst_jax.safe_pickle.MAX_BYTES") -> dict[str, np.ndarray]:
+                    reason: str = "gst_jax.safe_pickle.MAX_BYTES",
+                    declared_copies: int | None = None) -> dict[str, np.ndarray]:
     """A mapping of torch names to arrays, from a mapping or a `.pt` file (the release's
     checkpoint layout, `{"model_state_dict": ..., ...}`, or a bare state dict); reading the
-    file may allocate at most `max_bytes` (`gst_jax.safe_pickle.read_torch`)."""
+    file may allocate at most `max_bytes`, and at most `declared_copies` times the bytes its
+    zip entries declare (`gst_jax.safe_pickle.read_torch`)."""
     if isinstance(source, Mapping):
         return {name: np.asarray(value) for name, value in source.items()}
-    loaded = read_torch(source, max_bytes, reason)
+    loaded = read_torch(source, max_bytes, reason, declared_copies)
     if isinstance(loaded, Mapping) and "model_state_dict" in loaded:
         loaded = loaded["model_state_dict"]
     if not (isinstance(loaded, Mapping) and loaded
@@ -52,7 +54,9 @@ def expected_state_dict(config: ModelConfig) -> dict[str, tuple[int, ...]]:
     """{torch name: shape} of the tensors `params_from_torch` reads for a model of `config` (n
     = config.num_edge_heads), in the release's names; `check_state_dict` also takes
     gst_updated's node embedding name and, with n = 0, no edge embedding."""
-    zeros = {name: np.zeros(shape, dtype)
+    # Zero-stride views of one zero each: the shapes of any model its config allows (a
+    # hostile args.pickle's 64 layers 4096 wide) without allocating them.
+    zeros = {name: np.broadcast_to(np.zeros((), dtype), shape)
              for name, (shape, dtype) in weights.expected_layout(config).items()}
     tree: dict = {}
     for name, value in zeros.items():

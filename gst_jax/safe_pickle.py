@@ -24,8 +24,10 @@ pickle names, a tensor by its shape (a 620-byte file holding a (40000, 40000) te
 0 over one element would be a 6.4 GB copy). Entries are decompressed in bounded chunks and
 never past the size their header declares (zipfile's own `read()` would inflate up to 2 GiB
 at once first). The default, MAX_BYTES, is for a reader that knows nothing of the file;
-`gst_jax.crowdnav.load` bounds a checkpoint by its model's known shapes. `read_args` reads at
-most MAX_ARGS_BYTES.
+`declared_copies` bounds it further by the bytes the zip's own entries declare (a 620-byte
+file may then make a few kB, whatever else tells how large its tensors should be):
+`gst_jax.crowdnav.load` reads a checkpoint so, within a fixed budget. `read_args` reads at most
+MAX_ARGS_BYTES.
 """
 
 from __future__ import annotations
@@ -335,13 +337,15 @@ def read_args(path: str | Path) -> dict[str, Any]:
 
 
 def read_torch(path: str | Path, max_bytes: int = MAX_BYTES,
-               reason: str = "gst_jax.safe_pickle.MAX_BYTES") -> Any:
+               reason: str = "gst_jax.safe_pickle.MAX_BYTES",
+               declared_copies: int | None = None) -> Any:
     """What `torch.load(path, weights_only=True)` returns, with numpy arrays for tensors.
     Refuses, before allocating, what would take reading it past `max_bytes` (its pickle, its
     storages' bytes and its tensors' copies together); `reason` says in the refusal where that
-    bound comes from."""
+    bound comes from. declared_copies: the bound is at most this many times the bytes its zip
+    entries declare (torch.save stores them uncompressed: reading one and copying its tensors
+    takes about twice them), where that is less."""
     path = Path(path)
-    budget = _Budget(max_bytes, reason)
 
     def read():
         with open(path, "rb") as f:
@@ -351,6 +355,12 @@ def read_torch(path: str | Path, max_bytes: int = MAX_BYTES,
                            "(before torch 1.6) is not read; re-save it with a newer torch"
                            if head[:1] == b"\x80" else "not a torch file (no zip archive)")
         with zipfile.ZipFile(path) as archive:
+            budget = _Budget(max_bytes, reason)
+            if declared_copies is not None:
+                declared = sum(entry.file_size for entry in archive.infolist())
+                if declared_copies * declared < max_bytes:
+                    budget = _Budget(declared_copies * declared, f"{declared_copies} times the "
+                                     f"{declared} bytes its zip entries declare")
             pickles = [n for n in archive.namelist()
                        if n.endswith("/data.pkl") and n.count("/") == 1]
             if len(pickles) != 1:

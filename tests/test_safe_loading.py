@@ -460,16 +460,90 @@ def test_a_pt_that_is_not_its_models_is_refused_naming_file_and_tensor(tmp_path,
     assert str(refused.value) == f"{folder / 'checkpoint' / 'epoch_100.pt'}: {problem}"
 
 
-def test_a_checkpoint_may_allocate_only_what_its_models_shapes_allow(tmp_path):
-    """Its args say how large its model is: a .pt making far more is refused before the
-    allocation, even below safe_pickle's default bound."""
+def in_words(nbytes: int) -> str:
+    """A byte count as the refusals write it: '1.09 MB', '2.4 kB', '620 bytes'."""
+    for unit, scale in (("GB", 10**9), ("MB", 10**6), ("kB", 10**3)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.3g} {unit}"
+    return f"{nbytes} bytes"
+
+
+def declared_bytes(pt: Path) -> int:
+    with zipfile.ZipFile(pt) as archive:
+        return sum(entry.file_size for entry in archive.infolist())
+
+
+def test_a_checkpoint_may_allocate_only_what_its_zip_entries_declare(tmp_path):
+    """A .pt making far more than its own entries hold is refused before the allocation, even
+    below the fixed budget (CrowdNav++'s checkpoint with a 16 MB stride-0 tensor beside it)."""
     one = _Storage(np.zeros(1, np.float32))
     folder = crowdnav_folder(tmp_path, optimizer_state_dict={
         "state": {0: {"exp_avg": _Tensor(one, 0, (2000, 2000), (0, 0))}}})
+    pt = folder / "checkpoint" / "epoch_100.pt"
+    declared = declared_bytes(pt)
     with pytest.raises(DataError) as refused:
         crowdnav.load(folder)
     assert str(refused.value) == (
-        f"{folder / 'checkpoint' / 'epoch_100.pt'}: a tensor of size (2000, 2000) (float32, "
-        "stride (0, 0)) would take 16 MB, more than the 5.38 MB reading one file may allocate "
-        "(8 times the 541224 bytes of its model's parameters as float64 by args.pickle, and "
-        "1 MiB): refused before allocating it")
+        f"{pt}: a tensor of size (2000, 2000) (float32, stride (0, 0)) would take 16 MB, more "
+        f"than the {in_words(4 * declared)} reading one file may allocate (4 times the "
+        f"{declared} bytes its zip entries declare): refused before allocating it")
+
+
+# crowdnav.load in a child whose heap is capped, one line per folder.
+LOAD_IN_A_CHILD = """
+import resource, sys
+resource.setrlimit(resource.RLIMIT_DATA, (int(sys.argv[1]), int(sys.argv[1])))
+from gst_jax import crowdnav
+from gst_jax.errors import DataError
+for folder in sys.argv[2:]:
+    try:
+        crowdnav.load(folder)
+    except DataError as error:
+        print("refused:", error)
+    except MemoryError:
+        print("MemoryError")
+    else:
+        print("loaded")
+"""
+
+
+def test_args_in_range_do_not_raise_what_a_checkpoint_may_allocate(tmp_path):
+    """args.pickle and the .pt come from the same folder: with in-range args of 64 layers
+    4096 wide, a 620-byte .pt reached 6.46 GB and a 4 MB zip bomb 4.29 GB (issue 94). The
+    bound is the fixed budget and the entries' declared bytes; a small .pt of another model is
+    refused by its tensors without allocating the args' model."""
+    hostile = {**ARGS, "embedding_size": 4096, "spatial_num_layers": 64}
+    assert 4096 % hostile["spatial_num_heads"] == 0
+    stride0 = crowdnav_folder(tmp_path / "stride0", hostile, state_dict={})
+    one = _Storage(np.zeros(1, np.float32))
+    write_pt(stride0 / "checkpoint" / "epoch_100.pt",
+             {"model_state_dict": {"w": _Tensor(one, 0, (40000, 40000), (0, 0))}})
+    bomb = crowdnav_folder(tmp_path / "bomb", hostile, state_dict={})
+    numel = 4095 * 2**20 // 4
+    data, _ = pickled({"model_state_dict": {"w": _Tensor(
+        _Storage(np.zeros(1, np.float32), numel), 0, (numel,), (1,))}})
+    zip_by_hand(bomb / "checkpoint" / "epoch_100.pt", [
+        stored("archive/data.pkl", data), stored("archive/byteorder", b"little"),
+        ("archive/data/0", deflated_zeros(4095), 8, 0, 4095 * 2**20)])
+    small = crowdnav_folder(tmp_path / "small", hostile)
+    pts = [folder / "checkpoint" / "epoch_100.pt" for folder in (stride0, bomb, small)]
+    assert pts[0].stat().st_size < 1000 and pts[1].stat().st_size < 4.3e6
+
+    root = Path(__file__).parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "OPENBLAS_NUM_THREADS": "1"}
+    child = subprocess.run([sys.executable, "-c", LOAD_IN_A_CHILD, str(HEAP_CAP), str(stride0),
+                            str(bomb), str(small)],
+                           cwd=root, env=env, capture_output=True, text=True)
+    assert child.returncode == 0, child.stderr[-2000:]
+    lines = child.stdout.strip().splitlines()
+    declared = declared_bytes(pts[0])
+    assert lines[:2] == [
+        f"refused: {pts[0]}: a tensor of size (40000, 40000) (float32, stride (0, 0)) would "
+        f"take 6.4 GB, more than the {in_words(4 * declared)} reading one file may allocate "
+        f"(4 times the {declared} bytes its zip entries declare): refused before allocating it",
+        f"refused: {pts[1]}: archive/data/0 (4293918720 bytes by its zip header) would take "
+        "4.29 GB, more than the 268 MB reading one file may allocate "
+        "(gst_jax.crowdnav.PT_MAX_BYTES): refused before allocating it"], lines
+    assert len(lines) == 3 and re.fullmatch(
+        rf"refused: {re.escape(str(pts[2]))}: (has no tensor|\S+ is of shape).*", lines[2]), lines
+    assert crowdnav.PT_MAX_BYTES == 2**28
