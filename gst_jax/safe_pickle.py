@@ -28,6 +28,9 @@ at once first). The default, MAX_BYTES, is for a reader that knows nothing of th
 file may then make a few kB, whatever else tells how large its tensors should be):
 `gst_jax.crowdnav.load` reads a checkpoint so, within a fixed budget. `read_args` reads at most
 MAX_ARGS_BYTES.
+
+Nor does either read anything but a regular file within its bound (a FIFO would block the
+read, a link to /dev/zero never end it): `gst_jax.regular_files` refuses it unread.
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from typing import Any, Callable
 import numpy as np
 
 from gst_jax.errors import DataError
+from gst_jax.regular_files import open_regular, read_regular
 
 # torch's storage classes and dtypes by name, as torch.save writes them; numpy has no bfloat16.
 STORAGE_DTYPES = {
@@ -313,6 +317,8 @@ def _read(path: Path, read: Callable[[], Any]):
         raise DataError(f"{path}: no such file") from None
     except _Refused as refused:
         raise DataError(f"{path}: {refused}") from None
+    except DataError:       # not a regular file, or too large (gst_jax.regular_files): said
+        raise
     except Exception as error:  # a malformed file can fail anywhere inside pickle or zipfile
         raise DataError(f"{path}: not readable ({type(error).__name__}: {error})") from None
 
@@ -323,10 +329,7 @@ def read_args(path: str | Path) -> dict[str, Any]:
     path = Path(path)
 
     def read():
-        with open(path, "rb") as f:
-            raw = f.read(MAX_ARGS_BYTES + 1)
-        if len(raw) > MAX_ARGS_BYTES:
-            raise _Refused(f"more than the {_size(MAX_ARGS_BYTES)} an args.pickle may hold")
+        raw = read_regular(path, MAX_ARGS_BYTES, "gst_jax.safe_pickle.MAX_ARGS_BYTES")
         loaded = _Unpickler(io.BytesIO(raw), _ARGS_GLOBALS, ARGS_ALLOWED).load()
         if isinstance(loaded, _Namespace):
             return dict(getattr(loaded, "values", {}))
@@ -348,13 +351,19 @@ def read_torch(path: str | Path, max_bytes: int = MAX_BYTES,
     path = Path(path)
 
     def read():
-        with open(path, "rb") as f:
-            head = f.read(4)
+        # The file itself within the larger bound (zipfile reads its central directory whole;
+        # the entries it reads count against max_bytes).
+        with open_regular(path, max(max_bytes, MAX_BYTES), reason if max_bytes > MAX_BYTES
+                          else "gst_jax.safe_pickle.MAX_BYTES") as file:
+            return read_open(file)
+
+    def read_open(file):
+        head = file.read(4)
         if not head.startswith(b"PK"):
             raise _Refused("not a torch file in its zip format: torch.save's legacy format "
                            "(before torch 1.6) is not read; re-save it with a newer torch"
                            if head[:1] == b"\x80" else "not a torch file (no zip archive)")
-        with zipfile.ZipFile(path) as archive:
+        with zipfile.ZipFile(file) as archive:
             budget = _Budget(max_bytes, reason)
             if declared_copies is not None:
                 declared = sum(entry.file_size for entry in archive.infolist())

@@ -31,11 +31,12 @@ one. Then the weights' checksum, that the file holds exactly the paths, shapes a
 `init_params(model)` (what a training of that ModelConfig holds:
 `abstract_train_state(model).params`), and that every value is finite (a NaN or infinite
 parameter would make every prediction NaN). Anything else is refused in one line naming the
-file and the field or tensor (`RunError`): a missing or damaged file, a file of another
-model, a value out of range. `pretrained:NAME` names a
-model shipped in the package (`gst_jax/pretrained/NAME/`: these two files and its record,
-meta.json). `python -m gst_jax.pretrained export MODEL --out DIR` writes such a folder from any
-model, `load_model(DIR)` and `crowdnav.load(DIR)` read it.
+file and the field or tensor (`RunError`): a missing or damaged file, one that is not a
+regular file (a FIFO, a link to /dev/zero) or holds more than MAX_WEIGHTS_BYTES /
+MAX_CONFIG_BYTES (refused unread), a file of another model, a value out of range.
+`pretrained:NAME` names a model shipped in the package (`gst_jax/pretrained/NAME/`: these
+two files and its record, meta.json). `python -m gst_jax.pretrained export MODEL --out DIR`
+writes such a folder from any model, `load_model(DIR)` and `crowdnav.load(DIR)` read it.
 
 One job, though over 400 lines: the format, written and read; most of it is the checks a read
 makes (of the fields, by their rules in `gst_jax.config`; of the checksums, tensors and
@@ -60,6 +61,7 @@ from gst_jax.config import DataConfig, ModelConfig, TrainConfig, rules
 from gst_jax.errors import RunError
 from gst_jax.model.gst import init_params
 from gst_jax.model.heads import HEADS
+from gst_jax.regular_files import read_regular
 
 __all__ = ["Weights", "config_digest", "expected_layout", "flatten", "folder_of", "is_weights",
            "layout_problems", "load", "read_config", "save", "shipped", "shipped_folder"]
@@ -74,6 +76,11 @@ PRETRAINED = "pretrained:"
 SHIPPED_RECORD = "meta.json"
 # config.json's own checksum: of its other fields, as canonical JSON (`config_digest`).
 CONFIG_DIGEST = "config_sha256"
+# The most either file may hold, read only where it is a regular file (`gst_jax.regular_files`:
+# a FIFO would block the read, a link to /dev/zero never end it). The shipped models' are 1.3 MB
+# and 3.4 kB.
+MAX_WEIGHTS_BYTES = 2**30
+MAX_CONFIG_BYTES = 2**20
 
 # A field's range: `check(value)` is None where the value is in it, else what it must be.
 Check = Callable[[Any], "str | None"]
@@ -197,8 +204,8 @@ def is_weights(spec: str | Path) -> bool:
     if (folder / WEIGHTS_FILE).exists():
         return True
     try:
-        return json.loads((folder / CONFIG_FILE).read_text()).get("format") == FORMAT
-    except (OSError, ValueError, AttributeError):
+        return json.loads(_read_config_bytes(folder / CONFIG_FILE)).get("format") == FORMAT
+    except (OSError, ValueError, AttributeError, RunError):
         return False
 
 
@@ -287,7 +294,7 @@ def read_config(spec: str | Path) -> dict:
     """The config.json of a weights folder (not checked against its weights)."""
     path = folder_of(spec) / CONFIG_FILE
     try:
-        config = json.loads(path.read_text())
+        config = json.loads(_read_config_bytes(path))
     except FileNotFoundError:
         raise RunError(f"{path}: no such file (a weights folder holds {WEIGHTS_FILE} and "
                        f"{CONFIG_FILE})") from None
@@ -299,6 +306,11 @@ def read_config(spec: str | Path) -> dict:
         if key not in config:
             raise RunError(f"{path}: has no {key!r}")
     return config
+
+
+def _read_config_bytes(path: Path) -> bytes:
+    return read_regular(path, MAX_CONFIG_BYTES, "gst_jax.model.weights.MAX_CONFIG_BYTES",
+                        RunError)
 
 
 def load(spec: str | Path) -> Weights:
@@ -316,7 +328,8 @@ def load(spec: str | Path) -> Weights:
     except (TypeError, ValueError) as error:
         raise RunError(f"{config_path}: not a model config ({error})") from None
     try:
-        raw = path.read_bytes()
+        raw = read_regular(path, MAX_WEIGHTS_BYTES, "gst_jax.model.weights.MAX_WEIGHTS_BYTES",
+                           RunError)
     except FileNotFoundError:
         raise RunError(f"{path}: no such file") from None
     except OSError as error:

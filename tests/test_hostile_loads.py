@@ -1,0 +1,158 @@
+"""Weights and config files from others are read only where they are regular files within a
+size bound (issue 94; `gst_jax.regular_files`): a FIFO named model.safetensors, config.json,
+args.pickle or epoch_N.pt is refused unread instead of blocking the read forever, a link to
+/dev/zero instead of being read until memory runs out, a file past its bound unread.
+
+Each FIFO here has a writer waiting to open it (`fifo`): a reader that opens it reads nothing
+(the writer closes at once), so code that opened it fails these tests instead of hanging them.
+What would read without end runs in a child whose heap is capped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from gst_jax import crowdnav
+from gst_jax.errors import DataError, RunError
+from gst_jax.model import weights
+from gst_jax.runs import load_model
+
+HEAP_CAP = 512 * 2**20
+
+
+@contextlib.contextmanager
+def fifo(path: Path):
+    """A FIFO at `path`, with a writer that closes it as soon as a reader opens it."""
+    os.mkfifo(path)
+    writer = threading.Thread(target=lambda: os.close(os.open(path, os.O_WRONLY)), daemon=True)
+    writer.start()
+    try:
+        yield path
+    finally:
+        while writer.is_alive():         # nobody read it: open it, so that the writer ends
+            os.close(os.open(path, os.O_RDONLY | os.O_NONBLOCK))
+            writer.join(0.01)
+
+
+def weights_folder(to: Path) -> Path:
+    """A copy of a shipped weights folder (model.safetensors, config.json)."""
+    return Path(shutil.copytree(weights.shipped_folder("crowdnav_sim"), to))
+
+
+def not_regular(path: Path, kind: str) -> str:
+    return f"{path} is {kind}, not a regular file: refused unread (name the file itself)"
+
+
+def test_a_fifo_as_weights_or_config_is_refused_unread(tmp_path):
+    folder = weights_folder(tmp_path / "safetensors")
+    (folder / weights.WEIGHTS_FILE).unlink()
+    with fifo(folder / weights.WEIGHTS_FILE) as path:
+        for load in (weights.load, load_model):
+            with pytest.raises(RunError) as refused:
+                load(folder)
+            assert str(refused.value) == not_regular(path, "a FIFO (named pipe)")
+
+    folder = weights_folder(tmp_path / "config")
+    (folder / weights.CONFIG_FILE).unlink()
+    with fifo(folder / weights.CONFIG_FILE) as path:
+        with pytest.raises(RunError) as refused:
+            weights.load(folder)
+        assert str(refused.value) == not_regular(path, "a FIFO (named pipe)")
+        (folder / weights.WEIGHTS_FILE).unlink()      # then only its config.json tells
+        assert not weights.is_weights(folder)
+
+
+def crowdnav_checkpoint(root: Path) -> Path:
+    """A CrowdNav++ folder whose args.pickle is in range and names epoch_100.pt."""
+    folder = root / "checkpoint"
+    folder.mkdir(parents=True)
+    args = dict(temporal="faster_lstm", embedding_size=64, spatial_num_layers=1,
+                spatial_num_heads=8, lstm_hidden_size=64, obs_seq_len=5, pred_seq_len=5,
+                ghost=False, num_epochs=100, batch_size=16, lr=1e-3, init_temp=0.5,
+                random_seed=1000)
+    (folder / "args.pickle").write_bytes(pickle.dumps(argparse.Namespace(**args)))
+    return root
+
+
+def test_a_fifo_or_a_device_as_crowdnav_args_or_checkpoint_is_refused_unread(tmp_path):
+    root = crowdnav_checkpoint(tmp_path / "args")
+    args = root / "checkpoint" / "args.pickle"
+    args.unlink()
+    with fifo(args):
+        with pytest.raises(DataError) as refused:
+            crowdnav.load(root)
+        assert str(refused.value) == not_regular(args, "a FIFO (named pipe)")
+    args.unlink()
+    args.symlink_to("/dev/zero")
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(root)
+    assert str(refused.value) == not_regular(args, "a character device (a link to /dev/zero)")
+
+    root = crowdnav_checkpoint(tmp_path / "pt")
+    pt = root / "checkpoint" / "epoch_100.pt"
+    with fifo(pt):
+        with pytest.raises(DataError) as refused:
+            crowdnav.load(root)
+        assert str(refused.value) == not_regular(pt, "a FIFO (named pipe)")
+    pt.unlink()
+    pt.symlink_to("/dev/zero")
+    with pytest.raises(DataError) as refused:
+        crowdnav.load(root)
+    assert str(refused.value) == not_regular(pt, "a character device (a link to /dev/zero)")
+
+
+def test_a_config_past_its_bound_is_refused_unread(tmp_path):
+    folder = weights_folder(tmp_path / "config")
+    config = folder / weights.CONFIG_FILE
+    os.truncate(config, 2**20 + 1)          # sparse: nothing written
+    with pytest.raises(RunError) as refused:
+        weights.load(folder)
+    assert str(refused.value) == (f"{config}: 1048577 bytes, more than the 1048576 it may hold "
+                                  "(gst_jax.model.weights.MAX_CONFIG_BYTES): refused unread")
+
+
+# weights.load in a child whose heap is capped, one line per folder.
+LOAD_IN_A_CHILD = """
+import resource, sys
+resource.setrlimit(resource.RLIMIT_DATA, (int(sys.argv[1]), int(sys.argv[1])))
+from gst_jax.errors import RunError
+from gst_jax.model import weights
+for folder in sys.argv[2:]:
+    try:
+        weights.load(folder)
+    except RunError as error:
+        print("refused:", error)
+    except MemoryError:
+        print("MemoryError")
+    else:
+        print("loaded")
+"""
+
+
+def test_weights_from_dev_zero_or_past_their_bound_are_refused_unread(tmp_path):
+    """A link to /dev/zero was read until memory ran out (issue 94), a 1 GiB file whole."""
+    zero = weights_folder(tmp_path / "zero")
+    (zero / weights.WEIGHTS_FILE).unlink()
+    (zero / weights.WEIGHTS_FILE).symlink_to("/dev/zero")
+    large = weights_folder(tmp_path / "large")
+    os.truncate(large / weights.WEIGHTS_FILE, 2**30 + 1)    # sparse: nothing written
+    root = Path(__file__).parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "OPENBLAS_NUM_THREADS": "1"}
+    child = subprocess.run([sys.executable, "-c", LOAD_IN_A_CHILD, str(HEAP_CAP), str(zero),
+                            str(large)], cwd=root, env=env, capture_output=True, text=True)
+    assert child.returncode == 0, child.stderr[-2000:]
+    assert child.stdout.strip().splitlines() == [
+        "refused: " + not_regular(zero / weights.WEIGHTS_FILE,
+                                  "a character device (a link to /dev/zero)"),
+        f"refused: {large / weights.WEIGHTS_FILE}: 1073741825 bytes, more than the 1073741824 "
+        "it may hold (gst_jax.model.weights.MAX_WEIGHTS_BYTES): refused unread"]
