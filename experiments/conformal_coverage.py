@@ -13,11 +13,13 @@ method:
 - each ETH/UCY scene's test split (the paper protocol's last 20 % of its files) through the
   scene's shipped model (`pretrained:<scene>_d`);
 - shift between scenes: HOTEL's model on ETH's test split;
-- shift in time: a simulated crowd (`gst_jax.simulate.crowds`, episode 900, 150 s at 0.25 s)
-  played at every step for its first 50 s and at every second step after, so that everyone
-  walks twice as fast from the middle of the stream's 400 frames on, through
-  `pretrained:crowdnav_sim` (trained on such crowds at their own speed). Split conformal is
-  calibrated before the change.
+- shift in time: the navigation task's own humans (`gst_jax.simulate.crowdnav`: 20 ORCA
+  humans who do not see the robot, no shift, recorded as `navigate crowds` records them, one
+  episode of 150 s at 0.25 s from seed 900) played at every step for its first 50 s and at
+  every second step after, so that everyone walks twice as fast from the middle of the
+  stream's 400 frames on, through `pretrained:crowdnav_sim` (CrowdNav++'s architecture trained
+  on ORCA-like crowds at their own speed, those of a stand-in simulator since removed). Split
+  conformal is calibrated before the change.
 
 ACI's step (gamma = 0.005 per score, `conformal.aci`'s default) was chosen on validation
 streams, never on these: `--select` plays each scene's validation split (protocol paper-val,
@@ -50,7 +52,8 @@ from gst_jax.coverage import (
 )
 from gst_jax.progress import Progress, hms
 from gst_jax.runs import load_model
-from gst_jax.simulate.crowds import CrowdConfig, simulate_crowd
+from gst_jax.simulate.crowdnav.crowds import Condition, person_ids, record_episodes
+from gst_jax.simulate.crowdnav.environment import EnvParams
 
 SCENES = ("eth", "hotel", "univ", "zara1", "zara2")
 METHODS = ("split", "aci", "dtaci")     # the published table's (gst_jax.coverage has pid too)
@@ -60,13 +63,17 @@ ALPHA, CALIBRATION = 0.1, 0.3
 TOLERANCE, SHIFT_TOLERANCE = 0.01, 0.015
 
 
-def speed_doubling_crowd(episode: int = 900, duration_s: float = 150.0) -> list[FrameRows]:
-    """A simulated crowd's frames: every step of its first third, every second step after
-    (as many frames), so that the speed doubles halfway through the stream."""
-    positions, detected = simulate_crowd(CrowdConfig(duration_s=duration_s), seed=episode)
+def speed_doubling_crowd(seed: int = 900, duration_s: float = 150.0) -> list[FrameRows]:
+    """The frames of one episode of the task's ORCA humans (`duration_s` from its reset, what
+    the robot detected, a human replaced at its goal under a new id): every step of its first
+    third, every second step after (as many frames), so that the speed doubles halfway
+    through the stream."""
+    record = record_episodes(Condition(), 1, seed, steps=round(duration_s / EnvParams().step_s))
+    positions, detected = record["positions"][0], record["detected"][0]
+    ids = person_ids(record["replaced"][0])
     third = len(positions) // 3
     steps = list(range(third)) + list(range(third, len(positions), 2))
-    return [(t, np.flatnonzero(detected[t]), positions[t][detected[t]]) for t in steps]
+    return [(t, ids[t][detected[t]], positions[t][detected[t]]) for t in steps]
 
 
 def cases() -> dict[str, tuple[str, Callable, str]]:

@@ -1,11 +1,16 @@
 """A planner's predictor trained here, beside CrowdNav++'s own, on simulated crowds:
 
-    python experiments/make_sim_crowds.py --out runs/sim_crowds --episodes 40
     python -m gst_jax.train --data runs/sim_crowds --fps 4 --step 0.25 --obs-len 5 \\
         --pred-len 5 --edge-heads 0 --no-ghost --node-dim 64 --encoder-layers 1 --lstm-dim 64 \\
         --temporal faster_lstm --output gaussian --epochs 100 --workdir runs/crowdnav_sim
     python experiments/crowdnav_sim.py --model runs/crowdnav_sim --data runs/sim_crowds
     python experiments/crowdnav_sim.py --data runs/sim_crowds --publish   # results/crowdnav_sim.md
+
+runs/sim_crowds held 40 episodes of a numpy stand-in simulator of ORCA-like humans, since
+removed (issue 90: one simulator of humans, the navigation task's; `python -m gst_jax.navigate
+crowds` writes its crowds): `pretrained:crowdnav_sim` and results/crowdnav_sim.md were made
+on them. The script reads any folder of 0.25 s crowds (e.g. `navigate crowds`' files), but
+those episodes can no longer be made.
 
 Both models on the test split of the simulated crowds (the last 20 % of every episode):
 the paper's protocol (20 sampled runs; GST (P) samples its Gaussians) and the mean mode a

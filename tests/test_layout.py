@@ -24,7 +24,7 @@ LAYERS = (
     ("foundation", {"gst_jax.config", "gst_jax.errors", "gst_jax.progress", "gst_jax.compiles",
                     "gst_jax.private_folders", "gst_jax.paired", "gst_jax.resources",
                     "gst_jax.host_devices", "gst_jax.arrays", "gst_jax.regular_files"}),
-    ("data", {"gst_jax.data.", "gst_jax.simulate.crowds", "gst_jax.safe_pickle"}),
+    ("data", {"gst_jax.data.", "gst_jax.safe_pickle"}),
     ("numerics", {"gst_jax.graph", "gst_jax.noise", "gst_jax.gumbel", "gst_jax.augment",
                   "gst_jax.adaptation",
                   "gst_jax.parallel", "gst_jax.simulate.agents.orca"}),

@@ -275,13 +275,22 @@ def test_whole_horizon_coverage_counts_a_prediction_only_with_every_step_inside(
 
 
 def test_the_shifted_crowd_of_the_coverage_study_steps_twice_as_far_halfway():
-    """experiments/conformal_coverage.py's speed shift: every simulator step for the first
-    third, every second step after, as many frames: the speed doubles halfway."""
+    """experiments/conformal_coverage.py's speed shift: every step of the task's humans for
+    the first third, every second step after, as many frames: each person seen in two
+    consecutive frames moves twice as far between them from halfway on."""
     from conformal_coverage import speed_doubling_crowd
 
-    frames = speed_doubling_crowd(duration_s=30.0)            # 121 simulator steps
+    frames = speed_doubling_crowd(duration_s=30.0)            # 121 steps of the environment
     steps = np.diff([frame for frame, _, _ in frames])
     assert len(frames) == 81 and list(steps[:39]) == [1] * 39 and set(steps[40:]) == {2}
+    assert all(len(set(ids.tolist())) == len(ids) for _, ids, _ in frames)
+
+    def moved(a, b):        # the distance each person seen in frames a and b walked between
+        _, here, there = np.intersect1d(a[1], b[1], return_indices=True)
+        return np.linalg.norm(b[2][there] - a[2][here], axis=-1)
+    before = np.concatenate([moved(frames[i], frames[i + 1]) for i in range(39)])
+    after = np.concatenate([moved(frames[i], frames[i + 1]) for i in range(40, 80)])
+    assert 1.8 < np.median(after) / np.median(before) < 2.2
 
 
 # --- A robot's loop: no compiling once warmed up, one track per person, frames in time ----------

@@ -1,5 +1,6 @@
 """A model on another time grid: CrowdNav++'s 0.25 s, 5 observed and 5 predicted steps, with
-its architecture, through the same commands as the paper's model, on simulated crowds."""
+its architecture, through the same commands as the paper's model, on the navigation task's
+own humans."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from gst_jax.config import DataConfig, TimeGrid
 from gst_jax.data import load_split
 from gst_jax.predict.__main__ import main as predict_main
 from gst_jax.runs import load_model
-from gst_jax.simulate.crowds import CrowdConfig, crowd_rows, simulate_crowd
+from gst_jax.simulate.crowdnav.crowds import Condition, write_crowds
 from gst_jax.testing.drawn import line_data, saved_figures
 
 CROWDNAV = ["--fps", "4", "--step", "0.25", "--obs-len", "5", "--pred-len", "5",
@@ -24,25 +25,11 @@ CROWDNAV = ["--fps", "4", "--step", "0.25", "--obs-len", "5", "--pred-len", "5",
 
 @pytest.fixture(scope="module")
 def crowds(tmp_path_factory) -> Path:
-    """Two short simulated episodes at 0.25 s, as experiments/make_sim_crowds.py writes them."""
-    folder = tmp_path_factory.mktemp("sim_crowds")
-    config = CrowdConfig(num_humans=8, duration_s=12.0)
-    for episode in range(2):
-        positions, detected = simulate_crowd(config, seed=episode)
-        (folder / f"episode_{episode}.txt").write_text("\n".join(crowd_rows(positions,
-                                                                             detected)))
+    """Two short episodes of the navigation task's own humans (8 ORCA humans, 12 s at 0.25 s),
+    written as `python -m gst_jax.navigate crowds` writes its files."""
+    folder = tmp_path_factory.mktemp("crowds")
+    write_crowds(folder, (Condition(num_humans=8),), episodes=2, seed=0, steps=48)
     return folder
-
-
-def test_simulated_crowds_keep_their_distance_and_leave_view():
-    positions, detected = simulate_crowd(CrowdConfig(duration_s=20.0), seed=0)
-    assert positions.shape == (81, 20, 2) and np.isfinite(positions).all()
-    gaps = np.linalg.norm(positions[:, :, None] - positions[:, None], axis=-1)
-    gaps[:, np.arange(20), np.arange(20)] = np.inf
-    assert gaps.min() > 0.2                          # they avoid one another (discs of 0.3 m)
-    speed = np.linalg.norm(np.diff(positions, axis=0), axis=-1) / 0.25
-    assert 0.5 < speed.mean() < 1.5
-    assert 0.3 < detected.mean() < 0.95              # humans enter and leave the sensor's range
 
 
 def test_a_0_25s_model_trains_evaluates_predicts_and_plots_through_the_commands(

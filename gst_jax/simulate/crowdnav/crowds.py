@@ -120,14 +120,15 @@ def crowd_rows(positions: np.ndarray, detected: np.ndarray, ids: np.ndarray) -> 
 
 
 def write_crowds(out: Path, conditions: tuple[Condition, ...], episodes: int, seed: int,
-                 progress: Progress | None = None) -> list[Path]:
+                 progress: Progress | None = None, steps: int | None = None) -> list[Path]:
     """`episodes` recorded episodes of each condition written to out/CONDITION-seedSEED-
     episodeI.txt (condition i's episodes from seed + i, so that adding a condition leaves the
-    others' files as they were); the files written."""
+    others' files as they were), `steps` steps each (default: to the end of the 50 s); the
+    files written."""
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for i, condition in enumerate(conditions):
-        record = record_episodes(condition, episodes, seed + i)
+        record = record_episodes(condition, episodes, seed + i, steps=steps)
         for e in range(episodes):
             path = out / f"{condition.name}-seed{seed + i}-episode{e}.txt"
             rows = crowd_rows(record["positions"][e], record["detected"][e],
