@@ -26,6 +26,9 @@ A tracker at another rate than the model's (5 Hz, 10 Hz, jittered, frames droppe
 frame's `time`: the stream resamples its tracks to the model's steps (`gst_jax.stream_time`:
 each track interpolated to each tick of a fixed grid from its detections on both sides, at
 most one tick late), and a gap in the frames runs the model once, not once per missing step.
+A frame further after the last than `max_gap_s` (by default obs_len + pred_len steps, beyond
+which nothing of the tracks is left) is refused, the stream unchanged: a stray timestamp, or
+times in milliseconds; after a real pause, the next frame starts the tracks afresh.
 
 Underneath, everything is a pure function of arrays, so that it jits, vmaps over robots
 (environments, as CrowdNav++ trains) and runs inside a planner's program: the core,
@@ -82,7 +85,7 @@ from gst_jax.stream_core import (
 )
 from gst_jax.stream_output import StreamOutput
 from gst_jax.stream_slots import Slots
-from gst_jax.stream_time import Clock
+from gst_jax.stream_time import Clock, Jumps
 
 __all__ = [
     # the host: numpy in and out, ids, capacity growth, times, compiling ahead
@@ -161,6 +164,14 @@ class Stream:
     deadline.
     shrink_after: frames in a row whose tracks fit a smaller bucket before the capacity
     shrinks to it, the tracks compacted (default SHRINK_AFTER, 20); None: never.
+    max_gap_s: the longest a timed frame may come after the last one (seconds; "horizon",
+    the default: obs_len + pred_len model steps, beyond which nothing of the tracks is left to
+    predict or score; at most 2**16 steps). A frame further on is refused in one line
+    (`DataError`) and changes nothing: a stray timestamp (1e9 after 0) or times in
+    milliseconds (a 10 Hz tracker's frames 100 apart) never reach the clock. Where the tracker
+    did pause so long, the next frame within max_gap_s after the refused one confirms the jump
+    and is taken: the tracks start afresh from it (the steps between run as a gap beyond the
+    horizon does).
     Compiles (with their seconds), capacity changes, overruns and constant velocity's frames
     are logged (`logging`, logger "gst_jax.stream"); nothing is printed.
     """
@@ -176,7 +187,7 @@ class Stream:
                  max_acceleration: float | None = MAX_ACCELERATION,
                  jump_tolerance: float = JUMP_TOLERANCE, step_s: float | None = None,
                  deadline_s: float | str | None = "default",
-                 shrink_after: int | None = SHRINK_AFTER):
+                 shrink_after: int | None = SHRINK_AFTER, max_gap_s: float | str = "horizon"):
         if deadline_s == "default":
             deadline_s = DEADLINE_S
         if non_finite not in NON_FINITE:
@@ -188,6 +199,9 @@ class Stream:
             use_persistent_cache(compilation_cache)
         self.model, self.params, self.mean, self.grid = stream_checks.predictor(
             run, num_samples, mean, convention, step_s)
+        # Frames that come too long after the last: refused, or taken as a jump confirmed.
+        self._jumps = Jumps(stream_checks.checked_max_gap(max_gap_s, self.grid),
+                            (self.grid.obs_len + self.grid.pred_len) * self.grid.step_s)
         self.regions, self.robot, self.adaptation = regions, robot, adaptation
         self.max_speed = None if max_speed is None else float(max_speed)
         self.gate, self.non_finite = gate, non_finite
@@ -241,28 +255,37 @@ class Stream:
         up to its own time (`StreamOutput.time`, `.ticks`), each track interpolated linearly
         there from its detections on both sides, at most two model steps apart
         (`gst_jax.stream_time`): any rate, jitter or dropped frames, none refused; a frame at
-        or before the last one's time is (`DataError`). A track missing from a frame is
-        filled in once seen again within two steps; steps where nobody was seen (a gap) run
-        at once, without the model. Without time, a frame is one model step after the last."""
+        or before the last one's time is (`DataError`), or more than `max_gap_s` after it
+        (unless it confirms a jump: see the class), or at a time that cannot be seconds, each
+        leaving the stream as it was. A track missing from a frame is filled in once seen
+        again within two steps; steps where nobody was seen (a gap) run at once, without the
+        model. Without time, a frame is one model step after the last."""
         ids, positions = stream_checks.checked_frame(ids, positions, self.non_finite)
         if self.robot:
             ids, positions = stream_checks.with_robot(ids, positions, robot_xy)
         clock = self._clock
         if time is None and clock.last_time is not None:       # a timed stream
             time = clock.last_time + clock.step_s
+        horizon = self.grid.obs_len + self.grid.pred_len
+        afresh = False
         if time is not None:
             time = clock.checked_time(time)
+            afresh = self._jumps.confirmed(time, clock.last_time, clock.step_s)
+        self._check_count(1 if time is None else 1 + horizon if afresh
+                          else clock.ticks_reached(time))
         if lost is not None:
             self.forget(lost)
         if time is None:
             return self._output([self._slots.advance(ids, positions)])
+        if afresh:      # a new clock from this frame, after the steps of a gap beyond horizon
+            self._clock = clock = Clock(clock.step_s)
         first = clock.ticks
         reached = clock.frame(time, ids, positions, self.gate)
         filled_ids, filled_ticks, filled_xy = reached.fills
         self._slots.fill(filled_ids, filled_ticks, filled_xy, first)
         if len(reached.restarted):     # their old tracks end at the next step, as forgotten
             self._slots.lost.update(reached.restarted.tolist())
-        steps, idle = [], 0
+        steps, idle = [], horizon if afresh else 0
         for n, tick in enumerate(reached.ticks):
             if len(tick.ids) == 0 and n < len(reached.ticks) - 1:
                 idle += 1
@@ -276,6 +299,14 @@ class Stream:
             return self._repeated(reached.restarted, time)
         return self._output(steps, reached.restarted, reached.ticks[-1].time,
                             len(reached.ticks))
+
+    def _check_count(self, steps: int) -> None:
+        """Refuse, in one line, a frame whose `steps` model steps would take the step count
+        past what its int32 holds (the key of step t folds in t; a saved stream keeps it)."""
+        if self.frames + steps > stream_file.MAX_COUNT:
+            raise DataError(f"a frame of {steps} model step(s) would take this stream past "
+                            f"{stream_file.MAX_COUNT} steps, the most its step count (int32) "
+                            "holds: start a new Stream")
 
     def _output(self, steps: list[tuple], restarted: np.ndarray | None = None,
                 time: float | None = None, ticks: int = 1) -> StreamOutput:
@@ -363,7 +394,8 @@ class Stream:
         no longer counts; its capacity is the saved one's). Built as the saved stream was (the
         same model and parameters, step, regions, adaptation and robot), or the file is
         refused in one line naming what differs (`DataError`), as a damaged file is
-        (`gst_jax.stream_file`). max_speed, non_finite and compilation_cache are this one's.
+        (`gst_jax.stream_file`). max_speed, non_finite, compilation_cache and max_gap_s are
+        this one's.
 
             stream = Stream(run, regions=Regions("dtaci", 0.1)).load("stream.safetensors")
         """

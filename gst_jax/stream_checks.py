@@ -16,6 +16,7 @@ from gst_jax.errors import DataError
 from gst_jax.model import Params
 from gst_jax.predictors import ConstantVelocity, Standing
 from gst_jax.stream_core import Gate, StreamModel
+from gst_jax.stream_time import MAX_GAP_STEPS
 
 # The robot's id among the tracks: no tracker's.
 ROBOT = np.iinfo(np.int32).max
@@ -105,6 +106,22 @@ def check_timing(deadline_s: float | str | None, shrink_after: int | None) -> No
                                          and shrink_after >= 1):
         raise DataError(f"Stream: shrink_after must be a number of frames, 1 or more (or "
                         f"None: never shrink), got {shrink_after!r}")
+
+
+def checked_max_gap(max_gap_s, grid: TimeGrid) -> float:
+    """A `Stream`'s max_gap_s in seconds: "horizon" is obs_len + pred_len model steps (beyond
+    them nothing of the tracks is left to predict or score); a number from one model step to
+    MAX_GAP_STEPS of them; anything else refused in one line."""
+    horizon = (grid.obs_len + grid.pred_len) * grid.step_s
+    if isinstance(max_gap_s, str) and max_gap_s == "horizon":
+        return horizon
+    if (isinstance(max_gap_s, numbers.Real) and not isinstance(max_gap_s, bool)
+            and grid.step_s <= float(max_gap_s) <= MAX_GAP_STEPS * grid.step_s):
+        return float(max_gap_s)
+    raise DataError(f"Stream: max_gap_s must be \"horizon\" (obs_len + pred_len model steps, "
+                    f"{horizon:g} s) or seconds from one model step ({grid.step_s:g}) to "
+                    f"{MAX_GAP_STEPS} of them ({MAX_GAP_STEPS * grid.step_s:g}), got "
+                    f"{max_gap_s!r}")
 
 
 def predictor(run, num_samples: int, mean: bool, convention: str, step_s

@@ -23,7 +23,9 @@ is. So:
   each side: a track seen first between two ticks is detected from the next.
 - A frame that reaches no tick changes no prediction (the host repeats the last tick's); its
   detections wait for the next tick.
-- A frame before or at the last frame's time is refused in one line (`DataError`).
+- A frame before or at the last frame's time is refused in one line (`DataError`), as is a
+  time that cannot be seconds (beyond MAX_TIME_S: a Unix time in milliseconds). The host
+  refuses a frame too far after the last (`Stream(max_gap_s=)`), before the clock moves.
 
 Each known id's raw detection is judged by the stream's `Gate` (`gst_jax.stream_core`) from
 its last two raw detections before it is interpolated from: another person's
@@ -55,6 +57,14 @@ logger = logging.getLogger("gst_jax.stream")
 # straight line would invent the path the model is to predict.
 # A detection this close to a tick (seconds) is at the tick: timestamps' float rounding.
 TICK_S = 1e-6
+# A frame's time is seconds from any origin, but not beyond this: 1e10 s is over 300 years of
+# Unix time, where a Unix time in milliseconds is 1.7e12 (and float64 still resolves TICK_S).
+MAX_TIME_S = 1e10
+# The longest gap a stream may be told to accept (`Stream(max_gap_s=)`), in model steps: the
+# clock reaches each of a gap's steps in turn (2**16: 4.5 hours at 0.25 s).
+MAX_GAP_STEPS = 2**16
+# The most ticks a clock counts: the width of the step counter they feed (int32, the key's).
+MAX_TICKS = int(np.iinfo(np.int32).max)
 
 
 class Tick(NamedTuple):
@@ -136,7 +146,7 @@ class Clock:
             if time - last[0] <= reach_s + TICK_S:
                 before[row] = last
         first = self.ticks
-        last_index = math.floor((time - self.origin) / self.step_s + TICK_S / self.step_s)
+        last_index = self._last_index(time)
         ticks = [self._tick(k, ids, positions, time, before)
                  for k in range(first, last_index + 1)]
         fills = self._fills(ids, positions, time, before, first)
@@ -150,12 +160,27 @@ class Clock:
         self.last_time = time
         return Reached(ticks, fills, np.array(sorted(restarted), np.int32))
 
+    def _last_index(self, time: float) -> int:
+        """The last tick at or before `time` (within TICK_S)."""
+        assert self.origin is not None, "a clock that has seen a frame"
+        return math.floor((time - self.origin) / self.step_s + TICK_S / self.step_s)
+
+    def ticks_reached(self, time: float) -> int:
+        """How many ticks a frame at `time` (checked) would reach."""
+        if self.origin is None:
+            return 1
+        return max(0, self._last_index(time) + 1 - self.ticks)
+
     def checked_time(self, time) -> float:
-        """`time` as seconds, or a one-line refusal: not a finite number, or not after the
-        last frame's."""
+        """`time` as seconds, or a one-line refusal: not a finite number, not seconds (beyond
+        MAX_TIME_S), or not after the last frame's."""
         if not (isinstance(time, numbers.Real) and math.isfinite(time)):
             raise DataError(f"a frame's time must be a finite number of seconds, got {time!r}")
         time = float(time)
+        if abs(time) > MAX_TIME_S:
+            raise DataError(f"a frame's time must be seconds (from any origin, within "
+                            f"{MAX_TIME_S:g} of 0), got {time:g}: a Unix time in milliseconds "
+                            "or nanoseconds? Divide it by 1e3 or 1e9")
         if self.last_time is not None and time <= self.last_time:
             message = (f"a frame at time {time:g} s comes at or before the last one "
                        f"({self.last_time:g} s): frames must come in the order of their times")
@@ -218,9 +243,9 @@ class Clock:
         """A clock from `as_json`'s values, or a ValueError saying what they must be."""
         def seconds(x, none=True):
             if (x is None and none) or (isinstance(x, (int, float)) and not isinstance(x, bool)
-                                        and math.isfinite(x)):
+                                        and math.isfinite(x) and abs(x) <= MAX_TIME_S):
                 return x
-            raise ValueError("must hold finite seconds")
+            raise ValueError(f"must hold finite seconds, within {MAX_TIME_S:g} of 0")
 
         def sample(x, none=False):
             if x is None and none:
@@ -233,8 +258,8 @@ class Clock:
         if not (isinstance(value, dict) and set(value) == fields):
             raise ValueError(f"must be a clock: {', '.join(sorted(fields))}")
         ticks = value["ticks"]
-        if type(ticks) is not int or ticks < 0:
-            raise ValueError("must count its ticks with a whole number")
+        if type(ticks) is not int or not 0 <= ticks <= MAX_TICKS:
+            raise ValueError(f"must count its ticks with a whole number from 0 to {MAX_TICKS}")
         samples = {}
         for entry in value["samples"] if isinstance(value["samples"], list) else [None]:
             if not (isinstance(entry, list) and len(entry) == 3 and type(entry[0]) is int
@@ -246,6 +271,48 @@ class Clock:
             raise ValueError("must have a positive step")
         return cls(float(step_s), seconds(value["origin"]), ticks, seconds(value["last_time"]),
                    samples, _arrays(value["last_output"]))
+
+
+@dataclasses.dataclass
+class Jumps:
+    """What `Stream` makes of a frame that comes more than `max_gap_s` after the last one: a
+    stray timestamp, times in milliseconds, or a tracker that did pause so long. It is refused
+    in one line, before anything moves; the next frame within max_gap_s after it confirms the
+    jump, and the host starts the tracks afresh from that one.
+
+    max_gap_s: the bound (s); horizon_s: obs_len + pred_len model steps (s), the default
+    bound, named so in the refusal. jumped_to: the last frame refused so (its time), or None.
+    """
+
+    max_gap_s: float
+    horizon_s: float
+    jumped_to: float | None = None
+
+    def confirmed(self, time: float, last_time: float | None, step_s: float) -> bool:
+        """Whether a frame at `time` (checked, after `last_time`) confirms a jump refused
+        before; False where it comes within max_gap_s of the last frame. A frame further on
+        that confirms nothing is refused (`DataError`), and kept for the next to confirm."""
+        if last_time is None or time - last_time <= self.max_gap_s:
+            self.jumped_to = None
+            return False
+        if self.jumped_to is not None and 0 < time - self.jumped_to <= self.max_gap_s:
+            logger.info("a frame at %g s confirms the jump to %g s: the tracks start afresh",
+                        time, self.jumped_to)
+            self.jumped_to = None
+            return True
+        self.jumped_to = time
+        gap = time - last_time
+        bound = f"{self.max_gap_s:g} s" + (
+            " (obs_len + pred_len model steps, beyond which nothing of the tracks is left)"
+            if self.max_gap_s == self.horizon_s else "")
+        message = (f"a frame at time {time:g} s comes {gap:.6g} s ({gap / step_s:.6g} model "
+                   f"steps) after the last one ({last_time:g} s), more than max_gap_s {bound}: "
+                   "refused, the stream unchanged. Times must be seconds (in milliseconds a "
+                   "10 Hz tracker's frames come 100 apart); after a real pause, the next frame "
+                   f"within {self.max_gap_s:g} s after this one starts the tracks afresh "
+                   "(Stream(max_gap_s=...) allows longer gaps)")
+        logger.error(message)
+        raise DataError(message)
 
 
 # How a clock's last output is read back: each array's dtype (ids, futures and radii).

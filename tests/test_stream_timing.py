@@ -12,6 +12,7 @@ interpolations.
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ import pytest
 from gst_jax import conformal, stream
 from gst_jax.adaptation import SpeedScale
 from gst_jax.errors import DataError
+from gst_jax.predictors import ConstantVelocity
 from gst_jax.runs import load_model
 from gst_jax.stream_time import Clock
 
@@ -183,11 +185,12 @@ def test_a_gap_runs_the_model_once_and_scores_as_its_empty_steps_would(sim_run):
     """Frames with times and a gap of 7 steps, against frames without times and 6 empty frames
     in its place (what the stream ran before issue 92), with DtACI discs and SpeedScale: the
     same predictions, radii and scores after the gap, the compiled step called once for the
-    frame after the gap. A gap beyond obs_len + pred_len steps runs it once too; a frame
-    without a time then comes a step after the last."""
+    frame after the gap. A gap beyond obs_len + pred_len steps, where max_gap_s allows it,
+    runs it once too; a frame without a time then comes a step after the last."""
     positions_at = walks(3, seed=8)
     options = dict(regions=conformal.Regions("dtaci", 0.1), adaptation=SpeedScale())
-    timed, reference = stream.Stream(sim_run, **options), stream.Stream(sim_run, **options)
+    timed = stream.Stream(sim_run, max_gap_s=10.0, **options)
+    reference = stream.Stream(sim_run, **options)
     steps = [k for k in range(30) if not 8 <= k <= 13]
     calls = []
     for k in range(30):
@@ -238,3 +241,73 @@ def test_lost_ids_given_with_their_frame_end_their_tracks_as_forget_does(sim_run
     assert sorted(outputs[2].ids.tolist()) == [6, 7] and outputs[2].delayed.mask[slots[2]].any()
     with pytest.raises(DataError, match="track ids must be integers"):
         players[0].step(*frame, time=8 * STEP_S, lost=[0.5])
+
+
+def test_a_frame_too_long_after_the_last_is_refused_and_the_stream_goes_on():
+    """Issue 94: time=1e9 after 0 went through 2.5e9 steps one by one (or raised an int32
+    OverflowError at that step and every later one), and times in milliseconds were taken with
+    nothing ever predicted. A frame more than max_gap_s after the last (by default obs_len +
+    pred_len steps: 7 of 0.5 s here) is refused in one line and changes nothing: the next
+    sane frame is predicted as if it had never come. Where the tracker did pause, the frame
+    after the refused one confirms the jump and the tracks start afresh. Constant velocity,
+    worked by hand: 1 m/s along x (id 1) and -y (id 2)."""
+    player = stream.Stream(ConstantVelocity(obs_len=4, pred_len=3), step_s=0.5)
+    ids = [1, 2]
+
+    def at(t: float) -> np.ndarray:
+        return np.array([[t, 0.0], [0.0, -t]])
+
+    for t in (0.0, 0.5, 1.0):
+        player.step(ids, at(t), time=t)
+    with pytest.raises(DataError) as refused:
+        player.step(ids, at(4.6), time=4.6)
+    assert str(refused.value) == (
+        "a frame at time 4.6 s comes 3.6 s (7.2 model steps) after the last one (1 s), more "
+        "than max_gap_s 3.5 s (obs_len + pred_len model steps, beyond which nothing of the "
+        "tracks is left): refused, the stream unchanged. Times must be seconds (in milliseconds "
+        "a 10 Hz tracker's frames come 100 apart); after a real pause, the next frame within "
+        "3.5 s after this one starts the tracks afresh (Stream(max_gap_s=...) allows longer "
+        "gaps)")
+    for t in (1e9, 101.0, 201.0):                # 1e9 s; then milliseconds, 100 apart
+        with pytest.raises(DataError, match=re.escape(f"a frame at time {t:g} s comes "
+                                                      f"{t - 1:g} s (")):
+            player.step(ids, at(1.5), time=t)
+    assert player.frames == 3
+    out = player.step(ids, at(1.5), time=1.5)
+    assert out.ids.tolist() == ids and player.frames == 4
+    steps = 0.5 * np.arange(1, 4)[:, None]
+    np.testing.assert_allclose(out.futures, [np.c_[1.5 + steps, 0 * steps],
+                                             np.c_[0 * steps, -1.5 - steps]], atol=1e-6)
+
+    with pytest.raises(DataError, match="after the last one"):      # a pause of a minute
+        player.step(ids, at(61.5), time=61.5)
+    out = player.step(ids, at(62.0), time=62.0)       # confirms it: the tracks start afresh
+    assert out.ids.size == 0 and player.frames == 4 + 1 + 7
+    out = player.step(ids, at(62.5), time=62.5)
+    assert out.ids.tolist() == ids and player.frames == 13
+    np.testing.assert_allclose(out.futures, [np.c_[62.5 + steps, 0 * steps],
+                                             np.c_[0 * steps, -62.5 - steps]], atol=1e-4)
+
+    # The step count is an int32 (the key folds it in): a frame past it is refused.
+    player._slots.frames = 2**31 - 2
+    player.step(ids, at(63.0), time=63.0)
+    with pytest.raises(DataError, match=r"would take this stream past 2147483647 steps, the "
+                                        r"most its step count \(int32\) holds"):
+        player.step(ids, at(63.5), time=63.5)
+    assert player.frames == 2**31 - 1
+
+
+def test_times_that_cannot_be_seconds_and_bad_gap_bounds_are_refused():
+    cv = ConstantVelocity(obs_len=4, pred_len=3)
+    player = stream.Stream(cv, step_s=0.5)
+    with pytest.raises(DataError, match=r"^a frame's time must be seconds \(from any origin, "
+                                        r"within 1e\+10 of 0\), got 1\.7e\+12: a Unix time in "
+                                        "milliseconds or nanoseconds"):
+        player.step([1], [[0.0, 0.0]], time=1.7e12)
+    assert player.frames == 0
+    player.step([1], [[0.0, 0.0]], time=1.7e9)        # a Unix time in seconds
+    for bad in (0.1, 2**16 * 0.5 + 1, "hour", True, float("nan")):
+        with pytest.raises(DataError, match="^Stream: max_gap_s must be \"horizon\""):
+            stream.Stream(cv, step_s=0.5, max_gap_s=bad)
+    with pytest.raises(ValueError, match="from 0 to 2147483647"):
+        Clock.from_json({**Clock(0.5).as_json(), "ticks": 2**31})
