@@ -167,11 +167,11 @@ class Stream:
     max_gap_s: the longest a timed frame may come after the last one (seconds; "horizon",
     the default: obs_len + pred_len model steps, beyond which nothing of the tracks is left to
     predict or score; at most 2**16 steps). A frame further on is refused in one line
-    (`DataError`) and changes nothing: a stray timestamp (1e9 after 0) or times in
-    milliseconds (a 10 Hz tracker's frames 100 apart) never reach the clock. Where the tracker
-    did pause so long, the next frame within max_gap_s after the refused one confirms the jump
-    and is taken: the tracks start afresh from it (the steps between run as a gap beyond the
-    horizon does).
+    (`gst_jax.stream_time.FrameGap`, a `DataError`, which a caller may skip) and changes
+    nothing: a stray timestamp (1e9 after 0) or times in milliseconds (a 10 Hz tracker's
+    frames 100 apart) never reach the clock. Where the tracker did pause so long, the next
+    frame within max_gap_s after the refused one confirms the jump and is taken: the tracks
+    start afresh from it (the steps between run as a gap beyond the horizon does).
     Compiles (with their seconds), capacity changes, overruns and constant velocity's frames
     are logged (`logging`, logger "gst_jax.stream"); nothing is printed.
     """

@@ -48,7 +48,9 @@ def stream_command(args) -> None:
     summary = ros2.replay(run, args.bag, args.out, topic=args.topic, regions=regions,
                           progress=Progress())
     summary["model"] = run.name
+    skipped = f" ({summary['skipped']} skipped)" if summary["skipped"] else ""
     print(json.dumps(summary, indent=2) if args.json else
-          f"written: {summary['out']}: {summary['frames']} frames, {summary['people']} people, "
+          f"written: {summary['out']}: {summary['frames']} frames{skipped}, "
+          f"{summary['people']} people, "
           f"{summary['predictions']} predictions, {summary['discs']} discs "
           f"({', '.join(f'{t}: {n}' for t, n in summary['topics'].items())})")

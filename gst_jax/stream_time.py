@@ -273,6 +273,15 @@ class Clock:
                    samples, _arrays(value["last_output"]))
 
 
+class FrameGap(DataError):
+    """A frame refused for coming more than max_gap_s after the last one (`Jumps`), with what
+    a caller that skips it (a bag's replay) reports: its time, the gap and the bound (s)."""
+
+    def __init__(self, message: str, time: float, gap_s: float, max_gap_s: float):
+        super().__init__(message)
+        self.time, self.gap_s, self.max_gap_s = time, gap_s, max_gap_s
+
+
 @dataclasses.dataclass
 class Jumps:
     """What `Stream` makes of a frame that comes more than `max_gap_s` after the last one: a
@@ -291,7 +300,8 @@ class Jumps:
     def confirmed(self, time: float, last_time: float | None, step_s: float) -> bool:
         """Whether a frame at `time` (checked, after `last_time`) confirms a jump refused
         before; False where it comes within max_gap_s of the last frame. A frame further on
-        that confirms nothing is refused (`DataError`), and kept for the next to confirm."""
+        that confirms nothing is refused (`FrameGap`, a `DataError`), and kept for the next
+        to confirm."""
         if last_time is None or time - last_time <= self.max_gap_s:
             self.jumped_to = None
             return False
@@ -312,7 +322,7 @@ class Jumps:
                    f"within {self.max_gap_s:g} s after this one starts the tracks afresh "
                    "(Stream(max_gap_s=...) allows longer gaps)")
         logger.error(message)
-        raise DataError(message)
+        raise FrameGap(message, time, gap, self.max_gap_s)
 
 
 # How a clock's last output is read back: each array's dtype (ids, futures and radii).

@@ -7,6 +7,7 @@ line."""
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 
@@ -190,6 +191,47 @@ def test_a_frame_the_stream_refuses_is_named_by_its_message(tmp_path):
                        "--topic", TOPIC])
     assert f"{late}, message 2 on {TOPIC} (stamp {(START_NS - STEP_NS) / 1e9:.3f} s): " in message
     assert not (tmp_path / "o.mcap").exists() and not (tmp_path / "o.mcap.partial").exists()
+
+
+def test_a_message_after_a_pause_beyond_the_horizon_is_skipped_and_the_replay_goes_on(
+        run, tmp_path, caplog):
+    """A tracker that paused 10 s, more than the stream's max_gap_s (crowdnav_sim's 5 + 5 steps,
+    2.5 s): the message after the pause is skipped with one warning, the next confirms the jump
+    and the tracks start afresh from it, predicted as by a stream that started there."""
+    walkers = {"a": ((0.0, 0.0), (1.0, 0.2)), "b": ((4.0, 1.0), (-0.8, 0.1)),
+               "c": ((1.0, 3.0), (0.3, -0.9))}                 # start (m), velocity (m/s)
+
+    def people(names, step):
+        return names, np.array([np.add(walkers[n][0], np.multiply(walkers[n][1], step / 4))
+                                for n in names])
+    steps = [*range(6), *range(45, 50)]                 # 6 to 44 not recorded: 10 s of pause
+    seen = {step: people(["a", "b"] if step < 6 else ["a", "c"], step) for step in steps}
+    bag = tmp_path / "pause.mcap"
+    write_people(bag, [(people_message(*seen[step], START_NS + step * STEP_NS),
+                        START_NS + step * STEP_NS) for step in steps])
+    with caplog.at_level(logging.INFO, logger="gst_jax.stream"):
+        summary = ros2.replay(run, bag, tmp_path / "out.mcap", topic=TOPIC, regions=None)
+    assert (summary["frames"], summary["skipped"]) == (len(steps) - 1, 1)
+    assert [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()] == [
+        f"{bag}, message 7 on {TOPIC} (stamp {(START_NS + 45 * STEP_NS) / 1e9:.3f} s) skipped: "
+        "it comes 10.000 s after the last frame, more than the stream's max_gap_s (2.5 s); the "
+        "next message within 2.5 s of it starts the tracks afresh"]
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+    written = read_bag(tmp_path / "out.mcap")[ros2.PREDICTIONS_TOPIC]
+    kept = [step for step in steps if step != 45]
+    assert [logged for _, logged, _ in written] == [START_NS + step * STEP_NS for step in kept]
+    afresh = Stream(run)
+    for step, (*_, markers) in zip(kept, written):
+        if step < 46:
+            continue
+        names, positions = seen[step]
+        out = afresh.step(np.array([ord(n) for n in names]), positions,
+                          time=(START_NS + step * STEP_NS) / 1e9)
+        paths = {m.text: [[p.x, p.y] for p in m.points] for m in markers.markers[1:]}
+        assert sorted(paths) == sorted(chr(i) for i in out.ids)
+        for track, future in zip(out.ids.tolist(), out.futures):
+            np.testing.assert_allclose(paths[chr(track)], future, rtol=0, atol=1e-5)
+    assert len(paths) == 2                                  # a and c, not b
 
 
 def test_bags_that_cannot_be_replayed_are_refused_in_one_line(bag, tmp_path):

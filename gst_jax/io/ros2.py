@@ -14,14 +14,17 @@ carries no ids at all (GenSafeNav's ROS 2 tracker sends them beside it as JSON t
 `spencer_tracking_msgs` is ROS 1's. A person's velocity, reliability and tags are not read: the
 stream keeps each track's history itself.
 
-The output, one message per input message on each topic, stamped with the input's header stamp
+The output, one message per input message on each topic (but the messages `replay` skips),
+stamped with the input's header stamp
 (its log time where that is zero), in the input's frame_id, logged at the input's log time:
 `PREDICTIONS_TOPIC` (a LINE_STRIP per predicted person, its points the predicted positions 1..P
 steps ahead, `id` the stream's id and `text` the tracker's name) and `DISCS_TOPIC` (a CYLINDER
 per predicted step k = 0..P-1, `id` the stream's id x P + k, centred on the predicted position,
 `scale.x` = `scale.y` = twice the conformal radius; a step whose radius is infinite, unbounded
-so far, has none). Each message
-starts with a DELETEALL marker, so people no longer predicted vanish.
+so far, has none). Each message starts with a DELETEALL marker, so people no longer predicted
+vanish. A message more than the stream's `max_gap_s` after the last (the model's obs_len +
+pred_len steps: a tracker's pause, or a stray stamp) is skipped with a warning (logger
+"gst_jax.stream"); the next message within max_gap_s of it starts the tracks afresh.
 
 Nothing here imports rclpy: a ROS 2 node (examples/ros2_node/) uses the same functions on the
 messages it receives, and turns the markers' dicts into messages with
@@ -35,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import math
 import os
 import re
@@ -48,6 +52,9 @@ from gst_jax.conformal import Regions
 from gst_jax.errors import DataError
 from gst_jax.progress import Progress
 from gst_jax.stream import Stream, StreamOutput
+from gst_jax.stream_time import FrameGap
+
+logger = logging.getLogger("gst_jax.stream")
 
 PEOPLE = "people_msgs/msg/People"
 MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
@@ -304,7 +311,10 @@ def replay(run, source: str | Path, out: str | Path, *, topic: str = PEOPLE_TOPI
     (mean mode, each frame at its header stamp) and write its predictions and discs to the bag
     `out` (the module's docstring says how). The people must be in one fixed frame (a world
     frame, metres), stamped in seconds (resampled to the model's steps as `Stream.step(time=)`
-    does). Returns a summary: frames, people, predictions and discs written, the topics'
+    does). A message more than the stream's max_gap_s after the last one is skipped with a
+    warning (logger "gst_jax.stream"), and the next within max_gap_s of it starts the tracks
+    afresh (`Stream(max_gap_s=)`); any other frame the stream refuses ends the replay. Returns a
+    summary: frames, people, predictions and discs written, frames skipped, the topics'
     message counts."""
     source, out = Path(source), Path(out)
     _require_bag_packages()
@@ -317,38 +327,61 @@ def replay(run, source: str | Path, out: str | Path, *, topic: str = PEOPLE_TOPI
     # A replay is offline: every frame waits for the model (no constant-velocity fallback on
     # a step slower than the model's period), so that the bag holds the model's predictions.
     stream, names = Stream(run, regions=regions, deadline_s=None), TrackNames()
-    frames = predictions = discs_written = 0
+    frames = predictions = discs_written = skipped = 0
     frame_id: str | None = None
     partial = out.with_name(out.name + ".partial")      # a bag whole or none: replaced at the end
     started = time.perf_counter()
     try:
-        with open(partial, "wb") as file:
+        with open(partial, "wb") as file, _refusals_reported_here():
             writer = BagWriter(file)
             for log_time, frame in read_people(source, topic):
-                where = f"{source}, message {frames + 1} on {topic}"
+                where = f"{source}, message {frames + skipped + 1} on {topic}"
                 frame_id = _same_frame(frame_id, frame.header["frame_id"], where)
                 try:
                     output = stream.step(names.ids_of(frame.names), frame.positions,
                                          time=frame.time_s)
+                except FrameGap as gap:
+                    logger.warning(
+                        "%s (stamp %.3f s) skipped: it comes %.3f s after the last frame, more "
+                        "than the stream's max_gap_s (%g s); the next message within %g s of it "
+                        "starts the tracks afresh", where, frame.time_s, gap.gap_s, gap.max_gap_s,
+                        gap.max_gap_s)
+                    skipped += 1
                 except DataError as error:
                     raise DataError(f"{where} (stamp {frame.time_s:.3f} s): {error}") from None
-                paths, discs = prediction_markers(output, names.names_of(output.ids),
-                                                  frame.header)
-                writer.write(PREDICTIONS_TOPIC, paths, log_time)
-                if discs is not None:
-                    writer.write(DISCS_TOPIC, discs, log_time)
-                    discs_written += len(discs["markers"]) - 1           # less the DELETEALL
-                frames, predictions = frames + 1, predictions + len(output.ids)
+                else:
+                    paths, discs = prediction_markers(output, names.names_of(output.ids),
+                                                      frame.header)
+                    writer.write(PREDICTIONS_TOPIC, paths, log_time)
+                    if discs is not None:
+                        writer.write(DISCS_TOPIC, discs, log_time)
+                        discs_written += len(discs["markers"]) - 1       # less the DELETEALL
+                    frames, predictions = frames + 1, predictions + len(output.ids)
                 if progress is not None and total:
-                    progress.count("frames", frames, total, started)
+                    progress.count("frames", frames + skipped, total, started)
             writer.finish()
         os.replace(partial, out)
     finally:
         partial.unlink(missing_ok=True)
     return {"bag": str(source), "out": str(out), "topic": topic, "frame_id": frame_id,
             "frames": frames, "people": len(names.names), "predictions": predictions,
-            "discs": discs_written, "topics": dict(writer.counts),
+            "discs": discs_written, "skipped": skipped, "topics": dict(writer.counts),
             "seconds": round(time.perf_counter() - started, 3)}
+
+
+@contextlib.contextmanager
+def _refusals_reported_here():
+    """The stream's own log records of the frames it refuses (stream_time's errors) kept out of
+    the log while a replay runs: the replay reports each itself, once (the warning of a message
+    it skips, or the error it ends on)."""
+    def unreported(record: logging.LogRecord) -> bool:
+        return not (record.module == "stream_time" and record.levelno >= logging.ERROR)
+
+    logger.addFilter(unreported)
+    try:
+        yield
+    finally:
+        logger.removeFilter(unreported)
 
 
 def _same_frame(first: str | None, frame_id: str, where: str) -> str:
