@@ -18,14 +18,16 @@ One file, so that one rename replaces it: a crash while saving leaves the last c
 (or none), never half a file, nor one save's JSON beside another's arrays. Any safetensors
 reader opens it (`safetensors.safe_open(path, "np").metadata()` shows the JSON).
 
-`read` checks, refusing in one line naming the file (`DataError`): the header's size before
-reading it (at most MAX_HEADER_BYTES), the format, the stream the tracks are of against the
-loading stream's (`identity`: the predictor, its parameters' checksum, the time step, the
-regions, the adaptation, the robot), the capacity (a bucket size), the file's size against
-what a state of that capacity holds before the arrays are read (nothing larger is read), the
-checksum, every tensor's name, shape and dtype against an empty state of that capacity, and
-the values (ids free or non-negative, each held once; positions finite; detections 0 or 1).
-The host's fields are read by their own rules (`Kept`).
+`read` checks, refusing in one line naming the file (`DataError`): that it is a regular file
+of at most MAX_FILE_BYTES before opening it (`gst_jax.regular_files`: a FIFO would block the
+read, a link to /dev/zero never end it), the header's size before reading it (at most
+MAX_HEADER_BYTES), the format, the stream the tracks are of against the loading stream's
+(`identity`: the predictor, its parameters' checksum, the time step, the regions, the
+adaptation, the robot), the capacity (a bucket size), the file's size against what a state of
+that capacity holds before the arrays are read (nothing larger is read), the checksum, every
+tensor's name, shape and dtype against an empty state of that capacity, and the values (ids
+free or non-negative, each held once; positions finite; detections 0 or 1). The host's fields
+are read by their own rules (`Kept`).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ import safetensors.numpy
 from gst_jax.data import bucket_size
 from gst_jax.errors import DataError
 from gst_jax.model.weights import flatten, flatten_abstract, layout_problems
+from gst_jax.regular_files import open_regular
 from gst_jax.stream_core import FREE, StreamState
 
 FORMAT = "gst_jax.stream/1"
@@ -55,6 +58,9 @@ METADATA_KEY = "gst_jax.stream"
 # A saved stream's header (tensors' entries and the JSON) is a few kB; this bounds what a
 # file can make the reader take before anything is checked.
 MAX_HEADER_BYTES = 2**20
+# What a saved stream may weigh: a state of MAX_CAPACITY slots (4.3 kB each with pred_len 12,
+# DtACI and an adaptation: 279 MB) fits; nothing is read from a larger file.
+MAX_FILE_BYTES = 2**30
 # Far beyond any crowd a robot tracks (and int32 frame indices): what a field may hold.
 MAX_CAPACITY = 2**16
 MAX_COUNT = 2**31 - 1
@@ -183,13 +189,13 @@ def read(path: str | Path, identity: dict, like: Callable[[int], StreamState],
     that capacity (`jax.eval_shape` of one will do), what the file must hold; kept: the host's
     fields by name, each read by its `Kept`."""
     path = Path(path)
+    if path.is_dir():
+        raise DataError(f"{path} is a folder: name a file saved by Stream.save")
     try:
-        with open(path, "rb") as file:
+        with open_regular(path, MAX_FILE_BYTES, "gst_jax.stream_file.MAX_FILE_BYTES") as file:
             state, host = _read(file, path, identity, like)
     except FileNotFoundError:
         raise DataError(f"{path}: no such file (a stream saved by Stream.save)") from None
-    except IsADirectoryError:
-        raise DataError(f"{path} is a folder: name a file saved by Stream.save") from None
     except OSError as error:
         raise DataError(f"{path}: not readable ({error})") from None
     if sorted(host) != sorted(kept):

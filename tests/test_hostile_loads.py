@@ -1,7 +1,8 @@
-"""Weights and config files from others are read only where they are regular files within a
-size bound (issue 94; `gst_jax.regular_files`): a FIFO named model.safetensors, config.json,
-args.pickle or epoch_N.pt is refused unread instead of blocking the read forever, a link to
-/dev/zero instead of being read until memory runs out, a file past its bound unread.
+"""Weights, config files and saved streams from others are read only where they are regular
+files within a size bound (issue 94; `gst_jax.regular_files`): a FIFO named model.safetensors,
+config.json, args.pickle, epoch_N.pt or a saved stream is refused unread instead of blocking
+the read forever, a link to /dev/zero instead of being read until memory runs out, a file past
+its bound unread.
 
 Each FIFO here has a writer waiting to open it (`fifo`): a reader that opens it reads nothing
 (the writer closes at once), so code that opened it fails these tests instead of hanging them.
@@ -25,7 +26,9 @@ import pytest
 from gst_jax import crowdnav
 from gst_jax.errors import DataError, RunError
 from gst_jax.model import weights
+from gst_jax.predictors import ConstantVelocity
 from gst_jax.runs import load_model
+from gst_jax.stream import Stream
 
 HEAP_CAP = 512 * 2**20
 
@@ -156,3 +159,26 @@ def test_weights_from_dev_zero_or_past_their_bound_are_refused_unread(tmp_path):
                                   "a character device (a link to /dev/zero)"),
         f"refused: {large / weights.WEIGHTS_FILE}: 1073741825 bytes, more than the 1073741824 "
         "it may hold (gst_jax.model.weights.MAX_WEIGHTS_BYTES): refused unread"]
+
+
+def test_a_fifo_a_device_or_a_file_past_its_bound_as_a_saved_stream_is_refused_unread(tmp_path):
+    """Stream.load (`gst_jax.stream_file.read`) opened a FIFO and waited for a writer; /dev/zero
+    it read 8 bytes of (a header of 0 bytes), a 1 GiB file it began to read."""
+    stream = Stream(ConstantVelocity(obs_len=8, pred_len=12), step_s=0.4)
+    saved = tmp_path / "stream.safetensors"
+    with fifo(saved):
+        with pytest.raises(DataError) as refused:
+            stream.load(saved)
+        assert str(refused.value) == not_regular(saved, "a FIFO (named pipe)")
+    saved.unlink()
+    saved.symlink_to("/dev/zero")
+    with pytest.raises(DataError) as refused:
+        stream.load(saved)
+    assert str(refused.value) == not_regular(saved, "a character device (a link to /dev/zero)")
+    saved.unlink()
+    stream.save(saved)
+    os.truncate(saved, 2**30 + 1)                       # sparse: nothing written
+    with pytest.raises(DataError) as refused:
+        stream.load(saved)
+    assert str(refused.value) == (f"{saved}: 1073741825 bytes, more than the 1073741824 it may "
+                                  "hold (gst_jax.stream_file.MAX_FILE_BYTES): refused unread")
