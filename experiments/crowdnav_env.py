@@ -9,6 +9,8 @@ open loop, on held-out episodes of each condition (issue 90, part 2):
         --seed 1000 --workdir runs/crowdnav_env
     python -m gst_jax.train ...the same flags... --score-partial --hide-history 0.3 \
         --workdir runs/env_partial_a                      # pretrained:crowdnav_env_partial
+    python -m gst_jax.train ...the same flags... --score-partial --hide-history 0.3 \
+        --obs-len 8 --workdir runs/env_partial_obs8       # pretrained:crowdnav_env_obs8
     python experiments/crowdnav_env.py --model runs/crowdnav_env --publish
 
 The held-out episodes (seeds 100-129, one per condition of the training mix; the training's
@@ -38,9 +40,10 @@ from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.environment import EnvParams
 
 # The models compared: the one trained here on the task's humans (and again, scoring the
-# partially detected too), CrowdNav++'s (which the navigation study plans with) and the one
+# partially detected too, and so with 8 observed steps), CrowdNav++'s (which the navigation study plans with) and the one
 # trained on the former numpy stand-in crowds.
-MODELS = ("pretrained:crowdnav_env_partial", "pretrained:crowdnav_sj_rand",
+MODELS = ("pretrained:crowdnav_env_partial", "pretrained:crowdnav_env_obs8",
+          "pretrained:crowdnav_sj_rand",
           "pretrained:crowdnav_sim")
 # The first step a shift moves (the humans' velocities from the state at 6 s on).
 SHIFTED_FROM = round(EnvParams.shift_at_s / EnvParams.step_s) + 1

@@ -33,7 +33,8 @@ ROOT = Path(__file__).parent
 # Constant velocity is exact on such walkers at any speed.
 SPEED_RANGES: dict[str, tuple[float, float] | None] = {
     "crowd_d": (0.75, 3.25), "crowd_p": (0.75, 1.5),
-    "crowdnav_env": (0.25, 2.5), "crowdnav_env_partial": (0.25, 2.75),
+    "crowdnav_env": (0.25, 2.5), "crowdnav_env_obs8": (0.25, 2.5),
+    "crowdnav_env_partial": (0.25, 2.75),
     "crowdnav_sim": (1.0, 1.5),
     "crowdnav_sj": None, "crowdnav_sj_rand": (0.75, 1.0),
     "eth_d": None, "eth_p": None,
