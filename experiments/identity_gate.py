@@ -5,12 +5,13 @@ someone else (issue 92, item 3):
 
 Every annotated triple of a person's positions at steps t - 1, t and t + k (k = 1, 2, 4: a
 frame later, or after one or three missed frames) of ETH/UCY's five scenes (0.4 s steps) and of
-the simulated crowd (data/samples/sim_crowds, 0.25 s), judged as `observe` judges a known id:
-its velocity from t - 1 and t, its new position at t + k. A real track restarted is a false
-restart. Then the position at t + k is swapped for another person's at that step (the
-nearest to the true one, and one drawn at random), as a tracker that recycles or switches ids
-would: a restart is a catch. The default gate (MAX_SPEED, MAX_ACCELERATION, JUMP_TOLERANCE)
-against the rule before issue 92 (2.5 m/s, the speed rule alone).
+an episode of the navigation task's humans (data/samples/crowdnav_orca, 0.25 s), judged as
+`observe` judges a known id: its velocity from t - 1 and t, its new position at t + k. A real
+track restarted is a false restart. Then the position at t + k is swapped for another
+person's at that step (the nearest to the true one, and one drawn at random), as a tracker
+that recycles or switches ids would: a restart is a catch. The default gate (MAX_SPEED,
+MAX_ACCELERATION, JUMP_TOLERANCE) against the rule before issue 92 (2.5 m/s, the speed rule
+alone).
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from gst_jax import data
 from gst_jax.data.readers import Tracks, read_tracks, to_model_rate
 from gst_jax.stream import JUMP_TOLERANCE, MAX_ACCELERATION, MAX_SPEED, Gate
 
-SIM = Path(__file__).parents[1] / "data" / "samples" / "sim_crowds" / "episode_040.txt"
+SIM = (Path(__file__).parents[1] / "data" / "samples" / "crowdnav_orca"
+       / "orca-humans20-seed101-episode0.txt")
 GATES = {f"default ({MAX_SPEED:g} m/s, {MAX_ACCELERATION:g} m/s^2, {JUMP_TOLERANCE:g} m)":
          Gate(MAX_SPEED, MAX_ACCELERATION, JUMP_TOLERANCE),
          "before issue 92 (2.5 m/s alone)": Gate(2.5)}

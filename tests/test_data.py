@@ -159,8 +159,8 @@ def test_wildtrack_is_read_at_its_own_2hz_by_scene_and_by_data():
 # models with 0.25 s steps).
 BUNDLED_FLAGS = {"crowd_10hz.txt": ["--fps", "10", "--units", "cm"],
                  "crowd_mot.csv": ["--fps", "10"],
-                 "episode_040.txt": ["--fps", "4", "--step", "0.25", "--obs-len", "5",
-                                     "--pred-len", "5"],
+                 "orca-humans20-seed101-episode0.txt": [
+                     "--fps", "4", "--step", "0.25", "--obs-len", "5", "--pred-len", "5"],
                  "orca-reactive-humans20-shiftspeed-seed110-episode0.txt": [
                      "--fps", "4", "--step", "0.25", "--obs-len", "5", "--pred-len", "5"]}
 
@@ -181,7 +181,8 @@ def test_every_bundled_file_loads_through_data(path, capsys):
 
 def test_the_4hz_simulations_on_0_4s_steps_are_refused_with_the_fix():
     from gst_jax.data.__main__ import main
-    path = data.default_data_dir() / "samples" / "sim_crowds" / "episode_040.txt"
+    path = (data.default_data_dir() / "samples" / "crowdnav_orca"
+            / "orca-humans20-seed101-episode0.txt")
     with pytest.raises(SystemExit) as error:
         main(["stats", "--data", str(path), "--fps", "4"])
     assert str(error.value) == (

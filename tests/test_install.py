@@ -138,7 +138,7 @@ def test_the_robot_path_runs_from_the_installed_wheel(installed):
     assert str(installed.env_dir) in where
     assert streamed == "[1, 2] (2, 5, 2) (2, 5) True"
     sample = installed.env_dir.glob("lib/python*/site-packages/gst_jax/datasets/samples/"
-                                    "sim_crowds/episode_040.txt")
+                                    "crowdnav_orca/orca-humans20-seed101-episode0.txt")
     measured = json.loads(run("-m", "gst_jax.conformal", "pretrained:crowdnav_sim", "--data",
                               str(next(sample)), "--fps", "4", "--split", "all",
                               "--max-frames", "30", "--json"))

@@ -384,7 +384,7 @@ def test_the_bundled_scenes_and_samples_pass_the_speed_check_silently():
     configs = [(DataConfig(scene=scene), TimeGrid()) for scene in CROWD_SCENES]
     configs += [(_configs(SAMPLE)[0], TimeGrid()),
                 (DataConfig(scene="crowd_mot", data=str(MOT_SAMPLE), fps=10), TimeGrid()),
-                (DataConfig(scene="sim", data=str(SAMPLE.parent / "sim_crowds"), fps=4),
+                (DataConfig(scene="sim", data=str(SAMPLE.parent / "crowdnav_orca"), fps=4),
                  TimeGrid(step_s=0.25, obs_len=5, pred_len=5))]
     with warnings.catch_warnings():
         warnings.simplefilter("error")

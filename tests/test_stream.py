@@ -28,7 +28,9 @@ from gst_jax.predictors import ConstantVelocity
 from gst_jax.runs import load_model
 from gst_jax.testing.drawn import line_data, saved_figures
 
-SIM = Path(__file__).parents[1] / "data" / "samples" / "sim_crowds" / "episode_040.txt"
+# An episode of the navigation task's own humans (20 ORCA humans, what its robot detected).
+SIM = (Path(__file__).parents[1] / "data" / "samples" / "crowdnav_orca"
+       / "orca-humans20-seed101-episode0.txt")
 
 
 def frames_of(tracks) -> list[tuple[int, np.ndarray, np.ndarray]]:
@@ -176,11 +178,14 @@ def test_regions_are_issued_with_the_predictions_and_scored_k_steps_later(method
             np.testing.assert_array_equal(out.radii, np.broadcast_to(out.radii[0],
                                                                      out.radii.shape))
         delayed = out.delayed
-        # The horizon-k score of track slot s belongs to the prediction made k steps ago,
-        # with the radius issued then.
+        # The horizon-k score of the person in track slot s belongs to the prediction made
+        # for that person k steps ago, with the radius issued then (by id: the stream moves
+        # tracks to other slots when it shrinks, as new ids come and old ones are forgotten).
+        slot_ids = np.asarray(player.state.track_ids)
         for slot, k in zip(*np.nonzero(delayed.mask)):
-            assert delayed.issued[slot, k] == issued_before[t - k - 1][slot, k]
-        issued_before[t] = np.asarray(player.state.feed.issued[t % grid.pred_len])
+            assert delayed.issued[slot, k] == issued_before[t - k - 1][slot_ids[slot]][k]
+        issued = np.asarray(player.state.feed.issued[t % grid.pred_len])
+        issued_before[t] = {person: issued[slot] for slot, person in enumerate(slot_ids)}
         covered += int(np.sum(delayed.mask & (delayed.scores <= delayed.issued)))
         scored += int(np.sum(delayed.mask))
     assert scored > 1000

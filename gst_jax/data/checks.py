@@ -6,7 +6,7 @@ The speed thresholds come from the bundled scenes (median and 99th percentile sp
 consecutive detections of one person, at 0.4 s, m/s): eth 2.45 / 3.60, hotel 1.28 / 2.18,
 univ 0.52 / 1.64 and 0.72 / 1.72, zara1 1.15 / 1.82, zara2 1.01 / 1.86, lcas 0.075 / 2.31
 (most of its people stand), wildtrack 0.83 / 2.06 (its 2 Hz interpolated), data/samples
-1.13 / 1.82 and 0.66 / 1.44.
+1.13 / 1.82, and the navigation task's simulated humans 0.73 / 1.09 and 0.89 / 1.60 (at 0.25 s).
 A wrong unit is off by 3.3x (ft), 100x (cm) or 1000x (mm); a wrong rate by the ratio of rates.
 Whichever of a unit and a common frame rate brings the speeds nearer a crowd's is named first.
 """

@@ -28,7 +28,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="the weights format (safetensors, the only one written)")
     export.add_argument("--check-data", default=None, metavar="PATH",
                         help="with --name, data of the fixed-key check where the run's is not "
-                             "bundled: a path into the bundled data (e.g. samples/sim_crowds)")
+                             "bundled: a path into the bundled data (e.g. samples/crowdnav_orca)")
     export.add_argument("--check-fps", type=cli.field_type(DataConfig, "fps"), default=None,
                         help="frame ids per second of --check-data")
     export.add_argument("--source", help="where the parameters came from (default: the model)")
