@@ -3,16 +3,24 @@ its discs warm (`Stream.save`, `Stream.load`).
 
 One safetensors file. Its tensors are the tracks' arrays (`StreamState`: ids, histories,
 detections, the conformal score buffer and state, the adaptation state), one per leaf, named
-by its path ('track_ids', 'feed/issued', 'regions/thresholds', 'adaptation/stats/0', ...).
-Its metadata holds, under "gst_jax.stream", one JSON object for everything else:
+by its path ('track_ids', 'feed/issued', 'regions/thresholds', 'adaptation/stats/0', ...),
+and the host's arrays, named HOST_TENSORS + their place in the host's fields
+('host/_clock/last_output/futures': the last output, which a frame that reaches no model step
+repeats, (L, K, P, 2) in sample mode). Its metadata holds, under "gst_jax.stream", one JSON
+object for everything else:
 
-    {"format": "gst_jax.stream/1",     # this layout
+    {"format": "gst_jax.stream/2",     # this layout
      "stream": {"predictor": "GST(config=ModelConfig(...), ...)", "params_sha256": "...",
                 "step_s": 0.25, "regions": "Regions(method='dtaci', ...)",
                 "adaptation": "None", "robot": false},   # what the tracks are of
      "capacity": 16,                    # the state's slots
-     "host": {"frames": 42, "key": {...}, ...},   # the host's own fields (`Stream._KEPT`)
+     "host": {"frames": 42, "key": {...}, ...,    # the host's own fields (`Stream._KEPT`),
+              "_clock": {..., "last_output": {"ids": {"tensor": "host/_clock/last_output/ids"},
+                                              ...}}},   # each array a tensor's name
      "sha256": "..."}                   # of everything else in the file (`digest`)
+
+(Format 1 held the host's arrays as JSON lists: in sample mode, 20 futures of 128 tracks
+passed MAX_HEADER_BYTES, and the file could not be read back. Its files are refused.)
 
 One file, so that one rename replaces it: a crash while saving leaves the last complete save
 (or none), never half a file, nor one save's JSON beside another's arrays. Any safetensors
@@ -52,11 +60,12 @@ from gst_jax.model.weights import flatten, flatten_abstract, layout_problems
 from gst_jax.regular_files import open_regular
 from gst_jax.stream_core import FREE, StreamState
 
-FORMAT = "gst_jax.stream/1"
+FORMAT = "gst_jax.stream/2"
 # The metadata entry of the safetensors header that holds the JSON.
 METADATA_KEY = "gst_jax.stream"
-# A saved stream's header (tensors' entries and the JSON) is a few kB; this bounds what a
-# file can make the reader take before anything is checked.
+# A saved stream's header (tensors' entries and the JSON) is a few kB (30 kB with 128 tracks:
+# its arrays are tensors); this bounds what a file can make the reader take before anything
+# is checked.
 MAX_HEADER_BYTES = 2**20
 # What a saved stream may weigh: a state of MAX_CAPACITY slots (4.3 kB each with pred_len 12,
 # DtACI and an adaptation: 279 MB) fits; nothing is read from a larger file.
@@ -65,12 +74,16 @@ MAX_FILE_BYTES = 2**30
 MAX_CAPACITY = 2**16
 MAX_COUNT = 2**31 - 1
 FIELDS = ("format", "stream", "capacity", "host", "sha256")
+# The host's arrays are the file's tensors of this prefix, the JSON holding {"tensor": NAME}
+# in their place.
+HOST_TENSORS = "host/"
 
 
 @dataclasses.dataclass(frozen=True)
 class Kept:
-    """How the file keeps one of the host's fields as JSON: `write(value)`, and `read(json)`
-    the value back or a ValueError saying what it must be."""
+    """How the file keeps one of the host's fields: `write(value)` as JSON values, among which
+    numpy arrays may stand (each kept as a tensor, `HOST_TENSORS`), and `read(json)` the value
+    back (its arrays numpy arrays again) or a ValueError saying what it must be."""
 
     write: Callable[[Any], Any]
     read: Callable[[Any], Any]
@@ -141,12 +154,17 @@ def _split(raw: bytes) -> tuple[dict, bytes]:
 
 def write(path: str | Path, state: StreamState, identity: dict, host: dict) -> Path:
     """Save a stream's state, the `identity` of what its tracks are of and its host's fields
-    (JSON values) to `path` (its folder made if need be), atomically: written beside it,
-    then renamed over it. Returns the path."""
+    (JSON values and numpy arrays, `Kept`) to `path` (its folder made if need be),
+    atomically: written beside it, then renamed over it. Returns the path."""
     path = Path(path)
     if path.is_dir():
         raise DataError(f"{path} is a folder: name the file to save the stream to")
     tensors = flatten(state)
+    arrays: dict[str, np.ndarray] = {}
+    host = {name: _as_references(value, HOST_TENSORS + name, arrays)
+            for name, value in host.items()}
+    assert not set(arrays) & set(tensors), "the host's arrays are named apart from the state's"
+    tensors.update(arrays)
     fields = {"format": FORMAT, "stream": identity, "capacity": int(state.capacity),
               "host": host}
     header, data = _split(safetensors.numpy.save(tensors))
@@ -166,6 +184,38 @@ def write(path: str | Path, state: StreamState, identity: dict, host: dict) -> P
         raise
     _sync_folder(path.parent)
     return path
+
+
+def _as_references(value, name: str, arrays: dict[str, np.ndarray]) -> Any:
+    """`value` (JSON values and numpy arrays) with each array put in `arrays` under its name
+    (`name`, the place of `value`, then its keys and indices) and {"tensor": that name} in its
+    place."""
+    if isinstance(value, np.ndarray):
+        arrays[name] = np.ascontiguousarray(value)
+        return {"tensor": name}
+    if isinstance(value, dict):
+        return {key: _as_references(item, f"{name}/{key}", arrays) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_as_references(item, f"{name}/{k}", arrays) for k, item in enumerate(value)]
+    return value
+
+
+def _as_arrays(value, name: str, arrays: dict[str, np.ndarray],
+               refuse: Callable[[str], DataError]) -> Any:
+    """`_as_references` undone: each {"tensor": NAME} replaced by that tensor, taken out of
+    `arrays`; one that names another place than its own, or a tensor the file lacks (or one
+    taken already), refused."""
+    if isinstance(value, dict) and set(value) == {"tensor"}:
+        if value["tensor"] != name or name not in arrays:
+            raise refuse(f"host field {name.removeprefix(HOST_TENSORS)} names tensor "
+                         f"{_shown(value['tensor'])}, not one of its own")
+        return arrays.pop(name)
+    if isinstance(value, dict):
+        return {key: _as_arrays(item, f"{name}/{key}", arrays, refuse)
+                for key, item in value.items()}
+    if isinstance(value, list):
+        return [_as_arrays(item, f"{name}/{k}", arrays, refuse) for k, item in enumerate(value)]
+    return value
 
 
 def _sync_folder(folder: Path) -> None:
@@ -247,13 +297,14 @@ def _read(file, path: Path, identity: dict, like: Callable[[int], StreamState]
                      f"size of gst_jax.data.bucket_size, at most {MAX_CAPACITY})")
     expected = {name: (tuple(leaf.shape), np.dtype(leaf.dtype))
                 for name, leaf in flatten_abstract(like(capacity)).items()}
-    data_bytes = sum(math.prod(shape) * dtype.itemsize for shape, dtype in expected.values())
+    entries = {name: entry for name, entry in header.items() if name != "__metadata__"}
+    data_bytes = sum(math.prod(shape) * dtype.itemsize for shape, dtype in expected.values()
+                     ) + _host_bytes(entries, refuse)
     total = os.fstat(file.fileno()).st_size
     if total != 8 + size + data_bytes:
         raise refuse(f"{total} bytes, where a stream of {capacity} slots saves "
                      f"{8 + size + data_bytes}: the file is truncated or damaged")
     data = file.read(data_bytes)
-    entries = {name: entry for name, entry in header.items() if name != "__metadata__"}
     recorded = fields["sha256"]
     found = digest(fields, entries, data)
     if found != recorded:
@@ -263,6 +314,7 @@ def _read(file, path: Path, identity: dict, like: Callable[[int], StreamState]
         tensors = safetensors.numpy.load(prefix + header_bytes + data)
     except Exception as error:  # safetensors raises its own error type on a malformed file
         raise refuse(f"not a safetensors file ({error})") from None
+    arrays = {name: tensors.pop(name) for name in list(tensors) if name.startswith(HOST_TENSORS)}
     problems = layout_problems(tensors, expected)
     if problems:
         raise refuse(f"not the state of this stream: {'; '.join(problems[:3])}")
@@ -271,7 +323,27 @@ def _read(file, path: Path, identity: dict, like: Callable[[int], StreamState]
                                          [tensors[name] for name in flatten_abstract(abstract)])
     if (problem := _value_problem(state)) is not None:
         raise refuse(problem)
-    return state, fields["host"]
+    host = {name: _as_arrays(value, HOST_TENSORS + name, arrays, refuse)
+            for name, value in fields["host"].items()}
+    if arrays:
+        raise refuse(f"tensor {_shown(next(iter(arrays)))} is no host field's")
+    return state, host
+
+
+def _host_bytes(entries: dict, refuse: Callable[[str], DataError]) -> int:
+    """The bytes of the host's tensors among a header's `entries`, as their data offsets say
+    (which safetensors checks against their shapes and dtypes, and against each other)."""
+    total = 0
+    for name, entry in entries.items():
+        if not name.startswith(HOST_TENSORS):
+            continue
+        offsets = entry.get("data_offsets") if isinstance(entry, dict) else None
+        if not (isinstance(offsets, list) and len(offsets) == 2
+                and all(type(offset) is int for offset in offsets)
+                and 0 <= offsets[0] <= offsets[1]):
+            raise refuse(f"not a saved stream (tensor {_shown(name)} has no data offsets)")
+        total += offsets[1] - offsets[0]
+    return total
 
 
 def _check_identity(saved: dict, identity: dict, refuse: Callable[[str], DataError]) -> None:

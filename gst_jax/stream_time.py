@@ -90,7 +90,8 @@ class Reached(NamedTuple):
 
 @dataclasses.dataclass
 class Clock:
-    """The resampler's state, plain values (a saved stream keeps them: `as_json`).
+    """The resampler's state, plain values and the last output's arrays (a saved stream keeps
+    them: `as_json`).
 
     step_s: the model's step (s). origin: the first frame's time, tick 0 (None before it).
     ticks: the ticks reached so far. last_time: the last frame's time. samples: per track id
@@ -229,13 +230,13 @@ class Clock:
                 np.array(filled_xy, np.float64).reshape(-1, 2))
 
     def as_json(self) -> dict:
-        """The clock as JSON values (`from_json` reads them back)."""
+        """The clock as JSON values, the last output's arrays as numpy arrays (a saved stream
+        keeps each as a tensor: `gst_jax.stream_file.Kept`); `from_json` reads them back."""
         return {"step_s": self.step_s, "origin": self.origin, "ticks": self.ticks,
                 "last_time": self.last_time,
                 "samples": [[track, *kept] for track, kept in sorted(self.samples.items())],
                 "last_output": None if self.last_output is None else {
-                    name: None if array is None else {"shape": list(array.shape),
-                                                      "values": array.ravel().tolist()}
+                    name: None if array is None else np.asarray(array)
                     for name, array in self.last_output.items()}}
 
     @classmethod
@@ -330,23 +331,26 @@ _OUTPUT_DTYPES = {"ids": np.int32, "futures": np.float32, "radii": np.float32}
 
 
 def _arrays(value) -> dict[str, np.ndarray | None] | None:
-    """`Clock.as_json`'s last output back as arrays, or a ValueError."""
+    """`Clock.as_json`'s last output, checked and copied, or a ValueError: ids (L,), futures
+    (L, P, 2) or (L, K, P, 2), radii (L, P) or None."""
     if value is None:
         return None
     if not (isinstance(value, dict) and set(value) == set(_OUTPUT_DTYPES)):
         raise ValueError(f"must hold the last output's {', '.join(_OUTPUT_DTYPES)}")
-    arrays: dict[str, np.ndarray | None] = {}
     for name, dtype in _OUTPUT_DTYPES.items():
-        entry = value[name]
-        if entry is None and name == "radii":
-            arrays[name] = None
+        array = value[name]
+        if array is None and name == "radii":
             continue
-        try:
-            array = np.array(entry["values"], dtype).reshape(entry["shape"])
-        except (TypeError, KeyError, ValueError):
-            raise ValueError(f"must hold the last output's {name} as shape and values") from None
+        if not (isinstance(array, np.ndarray) and array.dtype == dtype):
+            raise ValueError(f"must hold the last output's {name} as an array of "
+                             f"{np.dtype(dtype)}")
         if np.isnan(array).any() or (name != "futures" and (array < 0).any()):
             raise ValueError(f"must hold a last output whose {name} are numbers (ids, radii: "
                              "0 or more)")
-        arrays[name] = array
-    return arrays
+    ids, futures, radii = value["ids"], value["futures"], value["radii"]
+    if not (ids.ndim == 1 and futures.ndim in (3, 4) and futures.shape[0] == len(ids)
+            and futures.shape[-1] == 2
+            and (radii is None or radii.shape == (len(ids), futures.shape[-2]))):
+        raise ValueError("must hold a last output of ids (L,), futures (L, P, 2) or "
+                         "(L, K, P, 2) and radii (L, P)")
+    return {name: None if array is None else np.array(array) for name, array in value.items()}

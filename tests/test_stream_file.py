@@ -11,15 +11,19 @@ import operator
 import os
 import re
 
+import jax
 import numpy as np
 import pytest
 import safetensors
 
 from gst_jax import stream_file
 from gst_jax.adaptation import SpeedScale
+from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.conformal import Regions
 from gst_jax.errors import DataError
+from gst_jax.model.gst import init_params
 from gst_jax.predictors import ConstantVelocity
+from gst_jax.runs import Run
 from gst_jax.stream import Stream
 
 STEP_S = 0.4
@@ -103,7 +107,11 @@ def test_the_file_is_safetensors_with_its_json_in_the_metadata(saved):
         fields = json.loads(file.metadata()[stream_file.METADATA_KEY])
         assert file.get_tensor("track_ids").shape == (8,)
         assert file.get_tensor("regions/thresholds").dtype == np.float32
-    assert fields["format"] == "gst_jax.stream/1" and fields["capacity"] == 8
+        last_futures = file.get_tensor("host/_clock/last_output/futures")
+    assert fields["host"]["_clock"]["last_output"]["futures"] == {
+        "tensor": "host/_clock/last_output/futures"}
+    assert last_futures.shape[1:] == (12, 2) and len(last_futures) >= 5
+    assert fields["format"] == "gst_jax.stream/2" and fields["capacity"] == 8
     assert fields["host"]["frames"] == SAVED_AT and fields["host"]["_lost"] == [103]
     assert fields["host"]["_clock"]["last_time"] == saved[1][SAVED_AT - 1][1][2]
     assert fields["stream"]["regions"] == repr(Regions("dtaci", 0.1))
@@ -142,8 +150,8 @@ def rewritten(path, tmp_path, edit) -> os.PathLike:
      r"\d+ bytes, where a stream of 8 slots saves \d+: the file is truncated"),
     (lambda raw: (2**40).to_bytes(8, "little") + raw[8:], "not a saved stream .* at most"),
     (lambda raw: b"{}", "not a saved stream \\(2 bytes\\)"),
-    (lambda raw: raw.replace(b"gst_jax.stream/1", b"gst_jax.stream/9"),
-     "format 'gst_jax.stream/9', not 'gst_jax.stream/1': saved by another version"),
+    (lambda raw: raw.replace(b"gst_jax.stream/2", b"gst_jax.stream/9"),
+     "format 'gst_jax.stream/9', not 'gst_jax.stream/2': saved by another version"),
 ])
 def test_a_damaged_edited_or_truncated_file_is_refused_in_one_line(saved, tmp_path, edit,
                                                                    problem):
@@ -170,6 +178,10 @@ def test_what_the_checksum_cannot_tell_the_checks_of_the_values_do(saved, tmp_pa
          "host field key is .*: is not a JAX key"),
         (state, {k: v for k, v in host.items() if k != "_lost"},
          "its host fields are not this gst_jax's \\(no _lost\\)"),
+        (state, {**host, "_clock": {**host["_clock"], "last_output": {
+            **host["_clock"]["last_output"], "ids": {"tensor": "host/_clock/last_output/radii"}}}},
+         "host field _clock/last_output/ids names tensor 'host/_clock/last_output/radii', not "
+         "one of its own"),
         (state.replace(track_ids=np.where(np.asarray(state.track_ids) == 102, 104,
                                           np.asarray(state.track_ids))),
          host, "track id 104 holds two slots"),
@@ -183,6 +195,43 @@ def test_what_the_checksum_cannot_tell_the_checks_of_the_values_do(saved, tmp_pa
         path = stream_file.write(tmp_path / f"{k}.safetensors", kept_state, identity, kept_host)
         with pytest.raises(DataError, match=f"^{re.escape(str(path))}: {problem}"):
             make().load(path)
+
+
+def test_a_stream_in_sample_mode_saves_its_last_output_as_tensors(tmp_path):
+    """20 futures of 24 tracks (a tiny untrained GST: the model is not the point): the last
+    output, which a frame between two model steps repeats, is 11,520 numbers; as JSON lists
+    in the header (format 1) they made it 238 kB, and with 128 tracks passed MAX_HEADER_BYTES,
+    so that the file could not be loaded. Now the header is 5 kB, and the restored stream
+    repeats and steps as the saved one, bit for bit."""
+    config = ModelConfig(node_dim=8, edge_dim=16, encoder_layers=1, encoder_ff_dim=16,
+                         lstm_hidden=8, obs_len=8, pred_len=12)
+    run = Run(name="tiny", model_config=config, data_config=DataConfig(),
+              train_config=TrainConfig(), params=init_params(config, jax.random.key(0)),
+              epoch=0, workdir=None)
+
+    def sampling(seed: int) -> Stream:
+        return Stream(run, num_samples=20, mean=False, regions=Regions("dtaci", 0.1), seed=seed)
+    rng = np.random.default_rng(3)
+    start, velocity = rng.uniform(-10, 10, (24, 2)), rng.uniform(-1, 1, (24, 2))
+
+    def frame(step: float):
+        return np.arange(24), start + velocity * step * config.step_s, step * config.step_s
+    player = sampling(seed=0)
+    for step in range(3):
+        *people, time = frame(step)
+        last = player.step(*people, time=time)
+    assert last.futures.shape == (24, 20, 12, 2)
+    path = player.save(tmp_path / "sampling.safetensors")
+    header_bytes = int.from_bytes(path.read_bytes()[:8], "little")
+    assert header_bytes < 16_000 < 200_000 < len(json.dumps(last.futures.tolist()))
+    restored = sampling(seed=5).load(path)
+    for step in (2.5, 3):                       # between two model steps (repeated), then at one
+        *people, time = frame(step)
+        out, never_stopped = restored.step(*people, time=time), player.step(*people, time=time)
+        assert out.ticks == never_stopped.ticks == (0 if step == 2.5 else 1)
+        assert same([out], [never_stopped])
+        if step == 2.5:
+            assert np.array_equal(out.futures, last.futures)
 
 
 def test_a_crash_while_saving_leaves_the_last_save_whole(saved, tmp_path, monkeypatch):
