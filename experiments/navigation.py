@@ -66,6 +66,7 @@ MODEL = "pretrained:crowdnav_sj_rand"
 # calibrated online, against CV's settings and the truth of the matrix above.
 TRAINED_HERE = "pretrained:crowdnav_env"
 TRAINED_PARTIAL = "pretrained:crowdnav_env_partial"
+TRAINED_OBS8 = "pretrained:crowdnav_env_obs8"
 ISSUE90 = [configuration for scenario in (NAMED["speed"], NAMED["policy"], DEFAULT)
            for configuration in [
                ("mpc", "none", scenario, TRAINED_HERE, "none"),
@@ -82,7 +83,20 @@ ISSUE90 = [configuration for scenario in (NAMED["speed"], NAMED["policy"], DEFAU
     for planner, regions, adaptation in [("mpc", "none", "none"), ("mpc", "dtaci", "none"),
                                          ("mpc", "none", "rls-blend"),
                                          ("mpc", "decision", "none"),
-                                         ("mpc", "none", "speed-scale")]]
+                                         ("mpc", "none", "speed-scale")]] + [
+    # And observing 8 steps (2 s) instead of 5, so that where a person heads shows longer.
+    (planner, regions, scenario, TRAINED_OBS8, "none")
+    for scenario in (NAMED["speed"], NAMED["policy"], DEFAULT)
+    for planner, regions in [("mpc", "none"), ("mpc", "decision")]]
+# Issue 90's best configuration played again on fresh episodes (seed CONFIRM_SEED, which
+# nothing was chosen on) against constant velocity's settings and the truth, in the scenario
+# where it beat constant velocity on the study's episodes: it was picked as the best of many.
+CONFIRM_SEED = 3000
+CONFIRMED = ("mpc", "decision", NAMED["policy"], TRAINED_OBS8, "none")
+CONFIRMATION = [CONFIRMED] + [(planner, regions, NAMED["policy"])
+                              for planner in ("cv-mpc", "truth-mpc")
+                              for regions in ("none", "dtaci", "decision")
+                              if (planner, regions) != ("truth-mpc", "decision")]
 # CrowdNav++'s released test logs (commit 3907731, trained_models/*/test/*.log, line 9; 500
 # episodes each; path length over all episodes, navigation time over the successes).
 CROWDNAV = [
@@ -247,6 +261,29 @@ def paired_table(rows: list[dict]) -> list[str]:
     return lines if len(lines) > 2 else []
 
 
+def confirmation_lines(runs, episodes: int) -> list[str]:
+    """CONFIRMED against constant velocity's best and the truth's best on the CONFIRMATION
+    episodes, paired, where all of them are made."""
+    records = [found(c, episodes, CONFIRM_SEED, runs) for c in CONFIRMATION]
+    if any(r is None for r in records):
+        return []
+    confirmed, others = records[0], records[1:]
+    best_cv = max((r for r in others if r["predictor"] == "cv"), key=lambda r: r["success"])
+    best_truth = max((r for r in others if r["predictor"] == "truth"),
+                     key=lambda r: r["success"])
+    success = compare(confirmed, best_cv)["success"]
+    margin = best_truth["success"] - best_cv["success"]
+    return [f"Played again on {episodes} fresh episodes (seed {CONFIRM_SEED} on, on which "
+            f"nothing was chosen), {setting(confirmed)} succeeds {confirmed['success']:.3f} "
+            f"against constant velocity's best there, {setting(best_cv)} "
+            f"{best_cv['success']:.3f}: {success['difference']:+.3f} ({success['low']:+.3f} to "
+            f"{success['high']:+.3f}, McNemar p {success['p']:.2g}), "
+            f"{success['difference'] / margin:.2f} of the truth's margin ({setting(best_truth)} "
+            f"{best_truth['success']:.3f}). Constant velocity's settings there: "
+            + ", ".join(f"{setting(r)} {r['success']:.3f}" for r in others
+                        if r["predictor"] == "cv") + ".", ""]
+
+
 def readings(default: list[dict], episodes: int) -> list[str]:
     """`reading` and `among_social_force` of issue 60's rows, where all of them are made."""
     orca = [r for r in default if r["humans"] == "orca"]
@@ -268,6 +305,9 @@ def main() -> None:
                         "configurations")
     parser.add_argument("--reverse", action="store_true", help="run them last first (a second "
                         "process beside one running them in order)")
+    parser.add_argument("--confirm", action="store_true", help="run only issue 90's best "
+                        f"configuration and its comparisons on fresh episodes (seed "
+                        f"{CONFIRM_SEED})")
     add_results_flags(parser, "navigation", "the records and navigation.md", runs=False)
     args = parser.parse_args()
     out = results_folder(args)
@@ -286,12 +326,15 @@ def main() -> None:
         in_order = [c for c in in_order if c[2] in [NAMED[name] for name in args.scenarios]]
     if args.reverse:
         in_order = in_order[::-1]
+    seed = CONFIRM_SEED if args.confirm else args.seed
+    if args.confirm:
+        in_order = CONFIRMATION
     for done, configuration in enumerate([] if args.tabulate else in_order):
-        if found(configuration, args.episodes, args.seed, runs) is None:
+        if found(configuration, args.episodes, seed, runs) is None:
             started = time.perf_counter()
-            record = run(configuration, args.episodes, args.seed, runs)
+            record = run(configuration, args.episodes, seed, runs)
             seconds.append(time.perf_counter() - started)
-            left = sum(found(c, args.episodes, args.seed, runs) is None for c in in_order)
+            left = sum(found(c, args.episodes, seed, runs) is None for c in in_order)
             print(f"[{done + 1}/{len(in_order)}] {row_label(record)}: success "
                   f"{record['success']:.3f}, {seconds[-1]:.0f} s; {left} left, about "
                   f"{left * sum(seconds) / len(seconds) / 3600:.1f} h at this pace", flush=True)
@@ -342,7 +385,8 @@ def main() -> None:
            "episode: the difference in success with its 95 % paired-bootstrap interval and "
            "McNemar's exact p, and the share of the truth's margin over that CV (the best "
            "truth setting's success minus CV's best) it captures.", "",
-           *paired_table(rows), ""] if paired_table(rows) else []),
+           *paired_table(rows), "", *confirmation_lines(runs, args.episodes)]
+          if paired_table(rows) else []),
         *([f"Not yet run ({len(missing)}): " + "; ".join(missing) + ".", ""] if missing
           else [])])
     (out / "navigation.md").write_text(text)
