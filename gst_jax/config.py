@@ -232,6 +232,10 @@ MAX_STEPS = 1000
 MAX_COUNT = 10**6
 # Learning rates, decays and temperatures: positive and at most this.
 MAX_RATE = 1e3
+# A time step (s): a millisecond is beyond any tracker's rate (1e-300 s would make every
+# timestamp a jump of astronomically many steps); a minute, beyond any walk worth predicting.
+MIN_STEP_S = 1e-3
+MAX_STEP_S = 60
 
 
 @dataclasses.dataclass(frozen=True)
@@ -243,7 +247,7 @@ class TimeGrid:
 
     step_s: float = setting(
         0.4, "the model's time step: data at other rates are resampled to it",
-        low=0, low_open=True, high=60)
+        low=MIN_STEP_S, high=MAX_STEP_S)
     obs_len: int = setting(8, "observed steps", low=1, high=MAX_STEPS)
     pred_len: int = setting(12, "predicted steps", low=1, high=MAX_STEPS)
 

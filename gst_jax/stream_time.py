@@ -43,6 +43,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
+from gst_jax.config import MAX_STEP_S, MIN_STEP_S
 from gst_jax.data.readers import MAX_INTERPOLATED_STEPS
 from gst_jax.errors import DataError
 
@@ -268,8 +269,8 @@ class Clock:
                 raise ValueError("must hold samples [track id, earlier, last]")
             samples[entry[0]] = [sample(entry[1], none=True), sample(entry[2])]
         step_s = seconds(value["step_s"], none=False)
-        if not step_s > 0:
-            raise ValueError("must have a positive step")
+        if not MIN_STEP_S <= step_s <= MAX_STEP_S:
+            raise ValueError(f"must have a step from {MIN_STEP_S:g} to {MAX_STEP_S:g} s")
         return cls(float(step_s), seconds(value["origin"]), ticks, seconds(value["last_time"]),
                    samples, _arrays(value["last_output"]))
 

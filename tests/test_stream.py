@@ -626,7 +626,7 @@ def test_a_stream_without_a_model_is_refused_in_one_line_without_its_step(sim_ru
     cv = ConstantVelocity(obs_len=8, pred_len=12)
     for make, problem in [
             (lambda: stream.Stream(cv), "ConstantVelocity needs step_s"),
-            (lambda: stream.Stream(cv, step_s=-0.4), "step_s must be a positive number"),
+            (lambda: stream.Stream(cv, step_s=-0.4), "step_s must be at least 0.001"),
             (lambda: stream.Stream(cv, step_s=0.4, num_samples=20), "are a model's"),
             (lambda: stream.Stream(ConstantVelocity(obs_len=1), step_s=0.4),
              "needs obs_len of 2 or more"),

@@ -19,6 +19,7 @@ import pytest
 
 from gst_jax import conformal, stream
 from gst_jax.adaptation import SpeedScale
+from gst_jax.config import RULE, TimeGrid
 from gst_jax.errors import DataError
 from gst_jax.predictors import ConstantVelocity
 from gst_jax.runs import load_model
@@ -311,3 +312,20 @@ def test_times_that_cannot_be_seconds_and_bad_gap_bounds_are_refused():
             stream.Stream(cv, step_s=0.5, max_gap_s=bad)
     with pytest.raises(ValueError, match="from 0 to 2147483647"):
         Clock.from_json({**Clock(0.5).as_json(), "ticks": 2**31})
+
+
+def test_a_time_step_outside_a_millisecond_to_a_minute_is_refused_in_one_line():
+    """Issue 94: a step of 1e-300 s was taken (every frame then a jump of ~1e300 steps); now
+    a step is from 1 ms to 60 s wherever it is set: a model's grid (its flags and config.json
+    read the same rule), a stream without a model, a saved stream's clock."""
+    cv = ConstantVelocity(obs_len=4, pred_len=3)
+    for bad in (1e-300, 0.000999, 60.5):
+        assert TimeGrid.__dataclass_fields__["step_s"].metadata[RULE].refusal(bad) is not None
+        with pytest.raises(DataError, match=r"^Stream: step_s must be at (least 0\.001|most "
+                                            rf"60), got {bad!r}$"):
+            stream.Stream(cv, step_s=bad)
+        with pytest.raises(ValueError, match=r"^must have a step from 0\.001 to 60 s$"):
+            Clock.from_json({**Clock(0.5).as_json(), "step_s": bad})
+    for good in (0.001, 60):
+        assert stream.Stream(cv, step_s=good).grid.step_s == good
+        assert Clock.from_json(Clock(good).as_json()).step_s == good
