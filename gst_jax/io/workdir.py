@@ -49,6 +49,10 @@ RUNS = Path("runs")
 # The fields of an epoch's record that measure the machine, not the training: kept out of
 # metrics.jsonl in timings.jsonl, so that two runs of one command leave identical metrics.
 TIMINGS = ("epoch_time_s", "scenes_per_s", "compiles", "compile_time_s", "finished_at")
+# K of the paper's protocol (evaluate's --samples default): its records keep the names they
+# had; an evaluation with another K is named for it, so that a quick look with --samples 2
+# does not replace the K = 20 record.
+EVALUATION_SAMPLES = 20
 
 
 @functools.cache
@@ -316,18 +320,22 @@ class WorkDir:
         if self.writes:
             write_text(self.path / "summary.json", json.dumps(summary, indent=2) + "\n")
 
-    def evaluation_path(self, data_config: DataConfig, split: str, epoch: int) -> Path:
-        """eval/<scene>-<protocol>-<split>-e<epoch>.json (the .md beside it); never outside
-        eval/, whatever a config names (`DataConfig` keeps scenes to names)."""
-        path = (self.path / "eval"
-                / f"{data_config.scene}-{data_config.protocol}-{split}-e{epoch}.json")
+    def evaluation_path(self, data_config: DataConfig, split: str, epoch: int,
+                        num_samples: int = EVALUATION_SAMPLES) -> Path:
+        """eval/<scene>-<protocol>-<split>-e<epoch>.json (the .md beside it), with -k<K>
+        before .json where K is not EVALUATION_SAMPLES; never outside eval/, whatever a
+        config names (`DataConfig` keeps scenes to names)."""
+        samples = "" if num_samples == EVALUATION_SAMPLES else f"-k{num_samples}"
+        path = (self.path / "eval" / f"{data_config.scene}-{data_config.protocol}-{split}"
+                                     f"-e{epoch}{samples}.json")
         if path.parent != self.path / "eval":
             raise RunError(f"{data_config.scene!r} is not a scene's name: its evaluation "
                            f"would be written outside {self.path / 'eval'}")
         return path
 
-    def read_evaluation(self, data_config: DataConfig, split: str, epoch: int) -> dict | None:
-        path = self.evaluation_path(data_config, split, epoch)
+    def read_evaluation(self, data_config: DataConfig, split: str, epoch: int,
+                        num_samples: int = EVALUATION_SAMPLES) -> dict | None:
+        path = self.evaluation_path(data_config, split, epoch, num_samples)
         return json.loads(path.read_text()) if path.exists() else None
 
     def check_writable(self) -> None:
@@ -340,9 +348,10 @@ class WorkDir:
                            "result with --json")
 
     def write_evaluation(self, data_config: DataConfig, split: str, epoch: int, result: dict,
-                         markdown: str) -> Path:
-        """Write an evaluation's JSON and markdown (process 0); returns the JSON path."""
-        path = self.evaluation_path(data_config, split, epoch)
+                         markdown: str, num_samples: int = EVALUATION_SAMPLES) -> Path:
+        """Write an evaluation of K = `num_samples` (its JSON and markdown, process 0);
+        returns the JSON path."""
+        path = self.evaluation_path(data_config, split, epoch, num_samples)
         if self.writes:
             path.parent.mkdir(parents=True, exist_ok=True)
             write_text(path, json.dumps(result, indent=2) + "\n")
