@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -39,8 +42,17 @@ def animate_navigation(robot: np.ndarray, humans: np.ndarray, goal: np.ndarray, 
         return [trail, body, sensor, *people]
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    FuncAnimation(fig, draw, frames=len(robot), blit=True).save(
-        # matplotlib's stubs want an int; a GIF takes any rate (frames 1000 / fps ms apart).
-        path, writer=PillowWriter(fps=2 / step_s), dpi=64)  # type: ignore[arg-type]
-    plt.close(fig)
+    # Written in a folder beside it, then renamed: an interrupt (which Pillow's cleanup, for
+    # errors only, lets through) leaves no empty or cut GIF under the name a rerun looks for.
+    # Pillow takes the format from the name, so the GIF keeps its own name in that folder.
+    partial = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    try:
+        FuncAnimation(fig, draw, frames=len(robot), blit=True).save(
+            # matplotlib's stubs want an int; a GIF takes any rate (frames 1000 / fps ms apart).
+            partial / path.name, writer=PillowWriter(fps=2 / step_s),  # type: ignore[arg-type]
+            dpi=64)
+        os.replace(partial / path.name, path)
+    finally:
+        plt.close(fig)
+        shutil.rmtree(partial, ignore_errors=True)
     return path
