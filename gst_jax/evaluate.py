@@ -3,9 +3,8 @@
 MODEL is a work directory (or one of its checkpoints), SWEEP_DIR:MEMBER or pretrained:NAME. K = 20
 hard-sampled predictions of every window are the paper's 20 runs: AOE and FOE (mean over runs, with
 their spread) on fully detected pedestrians beside best-of-K, KDE NLL, collisions, TrajNet++'s
-Col-I / Col-II and constant velocity on the same pedestrians, written to
-<workdir>/eval/<scene>-<protocol>-<split>-e<epoch>.json and .md (-e<epoch>-k<K>.json with
-another --samples K, so that a quick look keeps the K = 20 record).
+Col-I / Col-II and constant velocity on the same pedestrians, written to <workdir>/eval/
+<scene>-<protocol>-<split>-e<epoch>.json and .md (-k<K> before .json where --samples is not 20).
 """
 
 from __future__ import annotations
@@ -63,8 +62,7 @@ def evaluate(args) -> None:
     if args.markdown:
         Path(args.markdown).write_text(markdown)
     if out is not None:
-        written = out.write_evaluation(data_config, args.split, result["epoch"], result, markdown,
-                                       args.samples)
+        written = out.write_evaluation(data_config, args.split, result["epoch"], result, markdown)
         cli.say(f"\nwritten: {written}, .md")
 
 

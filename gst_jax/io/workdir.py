@@ -348,10 +348,11 @@ class WorkDir:
                            "result with --json")
 
     def write_evaluation(self, data_config: DataConfig, split: str, epoch: int, result: dict,
-                         markdown: str, num_samples: int = EVALUATION_SAMPLES) -> Path:
-        """Write an evaluation of K = `num_samples` (its JSON and markdown, process 0);
-        returns the JSON path."""
-        path = self.evaluation_path(data_config, split, epoch, num_samples)
+                         markdown: str) -> Path:
+        """Write an evaluation (its JSON and markdown, process 0), named by its K
+        (`result["samples"]`); returns the JSON path."""
+        path = self.evaluation_path(data_config, split, epoch,
+                                    result.get("samples", EVALUATION_SAMPLES))
         if self.writes:
             path.parent.mkdir(parents=True, exist_ok=True)
             write_text(path, json.dumps(result, indent=2) + "\n")
