@@ -16,11 +16,17 @@ from __future__ import annotations
 import argparse
 import shutil
 from pathlib import Path
+from typing import Iterator
+
+import jax
 
 from gst_jax.config import DataConfig, ModelConfig, TrainConfig
 from gst_jax.evaluation import evaluate_run, format_markdown
 from gst_jax.io.workdir import WorkDir
 from gst_jax.runs import load_run
+from gst_jax.simulate.crowdnav.environment import CrowdNav, EnvParams, EnvState
+from gst_jax.simulate.crowdnav.navigation import max_steps
+from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.training.loop import fit
 
 # Where unfinished runs are parked (their newest checkpoint, committed so that another sitting
@@ -30,6 +36,26 @@ PARKED = Path("parked")
 # The published tables and their records, in the checkout beside this folder; written only
 # with --publish.
 RESULTS = Path(__file__).resolve().parents[1] / "results"
+
+
+def mpc_states(env: CrowdNav, params: EnvParams, episodes: int, seed: int
+               ) -> Iterator[EnvState]:
+    """Every state after a step of the first `episodes` episodes (the keys of split(key(seed)))
+    with the sampling MPC driving the robot against `env`'s predictions, one step at a time:
+    for measuring beside the play what the jitted episodes do not return."""
+    planner = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
+    step, reset, plan = jax.jit(env.step_env), jax.jit(env.reset), jax.jit(planner)
+    for key in jax.random.split(jax.random.key(seed), episodes):
+        reset_key, key = jax.random.split(key)
+        obs, state = reset(reset_key, params)
+        planner_state = planner.init()
+        for _ in range(max_steps(params)):
+            key, plan_key, env_key = jax.random.split(key, 3)
+            action, planner_state = plan(plan_key, planner_state, obs)
+            obs, state, _, done, _ = step(env_key, state, action, params)
+            if bool(done):
+                break
+            yield state
 
 
 def train(model_config: ModelConfig, data_config: DataConfig, train_config: TrainConfig,

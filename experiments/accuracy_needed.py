@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from _common import RESULTS, add_results_flags, results_folder
+from _common import RESULTS, add_results_flags, mpc_states, results_folder
 from gst_jax.paired import paired_rates
 from gst_jax.predictors import ConstantVelocity, TruthFn, last_two_detected
 from gst_jax.simulate.crowdnav.environment import CrowdNav, EnvParams
@@ -57,27 +57,15 @@ def ade_against_truth(env: CrowdNav, params: EnvParams, weight: float, episodes:
                       seed: int) -> float:
     """The blend's mean displacement from the truth (m) over the humans predicted at every
     step of the first `episodes` episodes, the robot driven by the MPC against the blend
-    (the same planner and keys as the cell's; error grows linearly in w, so a few suffice)."""
-    planner = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
+    (the cell's planner, its own draws; error grows linearly in w, so a few suffice)."""
     truth = jax.jit(lambda state: env._truth(state, params))
     cv = ConstantVelocity(pred_len=env.pred_len)
-    step, reset, plan = jax.jit(env.step_env), jax.jit(env.reset), jax.jit(planner)
     errors = []
-    for key in jax.random.split(jax.random.key(seed), episodes):
-        reset_key, key = jax.random.split(key)
-        obs, state = reset(reset_key, params)
-        planner_state = planner.init()
-        for _ in range(200):
-            key, plan_key, env_key = jax.random.split(key, 3)
-            action, planner_state = plan(plan_key, planner_state, obs)
-            obs, state, _, done, _ = step(env_key, state, action, params)
-            if bool(done):
-                break
-            futures, predicted = cv.predict(None, None, state.tracks.positions,
-                                            state.tracks.detected)
-            exact = np.asarray(truth(state))                                 # (H, P, 2)
-            offset = np.linalg.norm(np.swapaxes(np.asarray(futures[0]), 0, 1) - exact, axis=-1)
-            errors.extend((weight * offset.mean(1))[np.asarray(predicted)].tolist())
+    for state in mpc_states(env, params, episodes, seed):
+        futures, predicted = cv.predict(None, None, state.tracks.positions, state.tracks.detected)
+        exact = np.asarray(truth(state))                                     # (H, P, 2)
+        offset = np.linalg.norm(np.swapaxes(np.asarray(futures[0]), 0, 1) - exact, axis=-1)
+        errors.extend((weight * offset.mean(1))[np.asarray(predicted)].tolist())
     return float(np.mean(errors))
 
 

@@ -40,8 +40,8 @@ from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.environment import EnvParams
 
 # The models compared: the one trained here on the task's humans (and again, scoring the
-# partially detected too, and so with 8 observed steps), CrowdNav++'s (which the navigation study plans with) and the one
-# trained on the former numpy stand-in crowds.
+# partially detected too, and so with 8 observed steps), CrowdNav++'s (which the navigation
+# study plans with) and the one trained on the former numpy stand-in crowds.
 MODELS = ("pretrained:crowdnav_env_partial", "pretrained:crowdnav_env_obs8",
           "pretrained:crowdnav_sj_rand",
           "pretrained:crowdnav_sim")

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from _common import add_results_flags, results_folder
+from _common import add_results_flags, mpc_states, results_folder
 from gst_jax.predictors import GST, ConstantVelocity
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.environment import (
@@ -43,7 +43,6 @@ from gst_jax.simulate.crowdnav.environment import (
     EnvParams,
     EnvState,
 )
-from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 HIDDEN = ("goal", "preferred speed", "radius", "unseen", "clock")
 MODELS = ("pretrained:crowdnav_env", "pretrained:crowdnav_env_partial")
@@ -80,7 +79,6 @@ def estimated(env: CrowdNav, state: EnvState, params: EnvParams, replaced: tuple
 def errors_of(shift: str, episodes: int, seed: int) -> dict:
     """{(phase, name): mean distance from the truth (m)} and the predictions counted."""
     env, params = CrowdNav.with_predictor(CONSTANT_VELOCITY, 20, shift=shift)
-    planner = SamplingMPC(horizon=env.pred_len, step_s=params.step_s)
     rollouts = {"truth's rules, " + name: (name,) for name in HIDDEN}
     rollouts["truth's rules, all estimated"] = HIDDEN
     predictors = {name: jax.jit(lambda state, hidden=hidden: env._truth(
@@ -97,26 +95,16 @@ def errors_of(shift: str, episodes: int, seed: int) -> dict:
                                                      state.tracks.positions,
                                                      state.tracks.detected)[0][0], 0, 1))
     truth = jax.jit(lambda state: env._truth(state, params))
-    step, reset, plan = jax.jit(env.step_env), jax.jit(env.reset), jax.jit(planner)
     errors = collections.defaultdict(list)
-    for key in jax.random.split(jax.random.key(seed), episodes):
-        reset_key, key = jax.random.split(key)
-        obs, state = reset(reset_key, params)
-        planner_state = planner.init()
-        for _ in range(200):
-            key, plan_key, env_key = jax.random.split(key, 3)
-            action, planner_state = plan(plan_key, planner_state, obs)
-            obs, state, _, done, _ = step(env_key, state, action, params)
-            if bool(done):
-                break
-            predicted = np.asarray((state.tracks.detected[:, -2:] > 0).all(-1))
-            exact = np.asarray(truth(state))                                 # (H, P, 2)
-            now = float(state.time)
-            phase = PHASES[(now + env.pred_len * params.step_s >= params.shift_at_s)
-                           + (now >= params.shift_at_s)]
-            for name, predict in predictors.items():
-                distance = np.linalg.norm(np.asarray(predict(state)) - exact, axis=-1)
-                errors[phase, name].extend(distance.mean(1)[predicted].tolist())
+    for state in mpc_states(env, params, episodes, seed):
+        predicted = np.asarray((state.tracks.detected[:, -2:] > 0).all(-1))
+        exact = np.asarray(truth(state))                                     # (H, P, 2)
+        now = float(state.time)
+        phase = PHASES[(now + env.pred_len * params.step_s >= params.shift_at_s)
+                       + (now >= params.shift_at_s)]
+        for name, predict in predictors.items():
+            distance = np.linalg.norm(np.asarray(predict(state)) - exact, axis=-1)
+            errors[phase, name].extend(distance.mean(1)[predicted].tolist())
     return {key: (float(np.mean(values)), len(values)) for key, values in errors.items()}
 
 
