@@ -226,7 +226,7 @@ def test_non_finite_weights_are_refused_in_one_line_naming_file_and_tensor(train
     ("model", "pred_len", 10**6, "must be an integer from 1 to 1000"),
     ("model", "pred_len", 0, "must be an integer from 1 to 1000"),
     ("model", "obs_len", -3, "must be an integer from 1 to 1000"),
-    ("model", "step_s", float("nan"), "must be a finite number in (0, 60]"),
+    ("model", "step_s", float("nan"), "must be a finite number in [0.001, 60]"),
     ("model", "dropout", 1.0, "must be a finite number in [0, 1)"),
     ("model", "pred_len", 12.0, "must be an integer from 1 to 1000"),
     ("model", "attention", "sideways", "must be one of release, masked"),
