@@ -29,6 +29,7 @@ import jax.numpy as jnp
 from gst_jax import crowdnav
 from gst_jax.config import ModelConfig
 from gst_jax.data import SceneBatch, node_mask_from_positions
+from gst_jax.errors import DataError
 from gst_jax.model import Params
 from gst_jax.predict import make_predict
 
@@ -75,10 +76,10 @@ class GST:
 
     def __post_init__(self):
         if self.convention not in ("gst", "crowdnav"):
-            raise ValueError(f"convention must be 'gst' or 'crowdnav', got {self.convention!r}")
+            raise DataError(f"convention must be 'gst' or 'crowdnav', got {self.convention!r}")
         if self.convention == "crowdnav" and (self.num_samples != 1 or not self.mean):
-            raise ValueError("CrowdNav++'s predictor predicts the mean only (num_samples=1, "
-                             "mean=True)")
+            raise DataError("CrowdNav++'s predictor predicts the mean only (num_samples=1, "
+                            "mean=True)")
 
     @property
     def obs_len(self) -> int:

@@ -118,6 +118,11 @@ SHRINK_AFTER = 20
 # `Stream`'s deadline_s where none is given: "step", the model's period (a robot's loop). The
 # test suite sets None (tests/conftest.py): no test's frame may depend on the machine's load.
 DEADLINE_S: float | str | None = "step"
+# `warm_up`'s bound on its compiles, in all: a choice (10 min), above the slowest warm-up
+# measured for a robot's crowd (crowd_d to 64 people on a loaded 2-core VM, docs/robot.md) and
+# far below the hours a mistyped size would take (issue 94: warm_up(10**6) compiled 57
+# programs in 7 minutes of 31,250).
+WARM_UP_COMPILE_S = 600.0
 # Why constant velocity, not the model, predicted a frame (`StreamOutput.fallback`): the
 # program of the capacity the crowd needs compiles in the background; the model's step took
 # longer than the deadline (or an earlier one that did still runs); the model's step failed.
@@ -190,9 +195,13 @@ class Stream:
                  shrink_after: int | None = SHRINK_AFTER, max_gap_s: float | str = "horizon"):
         if deadline_s == "default":
             deadline_s = DEADLINE_S
-        if non_finite not in NON_FINITE:
+        if not (isinstance(non_finite, str) and non_finite in NON_FINITE):
             raise DataError(f"Stream: non_finite must be one of {NON_FINITE}, got "
                             f"{non_finite!r}")
+        if regions is not None and not isinstance(regions, Regions):
+            raise DataError(f"Stream: regions must be gst_jax.conformal.Regions (e.g. "
+                            f"Regions(\"dtaci\", alpha=0.1)) or None, got "
+                            f"{type(regions).__name__} {str(regions)[:60]!r}")
         gate = stream_checks.checked_gate(max_speed, max_acceleration, jump_tolerance)
         stream_checks.check_timing(deadline_s, shrink_after)
         if compilation_cache is not None:
@@ -342,22 +351,31 @@ class Stream:
         frame's detections: an id among them seen again starts a new track, and the old
         track's pending predictions are never scored. The way to end a track: give the ids
         your tracker reports lost here, or with their frame (`step(..., lost=)`)."""
-        ids = np.asarray(ids).reshape(-1)
+        ids = stream_checks.as_array(ids, "forget: track ids").reshape(-1)
         if len(ids) and not np.issubdtype(ids.dtype, np.integer):
             raise DataError(f"forget: track ids must be integers, got {ids[:5].tolist()}")
         self._slots.lost.update(int(i) for i in ids)
         self._clock.forget(ids)
 
-    def warm_up(self, max_people: int) -> tuple[int, ...]:
+    def warm_up(self, max_people: int, max_compile_s: float | None = WARM_UP_COMPILE_S
+                ) -> tuple[int, ...]:
         """Compile the step of every capacity this stream can grow to while it holds at most
         `max_people` tracks (those in view and those unseen for fewer than obs_len steps), so
         that no step compiles later; returns the capacities. Each is one program: with
         CrowdNav++'s predictor and DtACI regions, 35 s for the six up to 64 on a loaded 2-core
         CPU, 5.8 s from a warm `compilation_cache` (the programs read, each step traced)
-        (docs/robot.md). The stream's own state is left as it was."""
+        (docs/robot.md). The largest compiles first: a crowd whose step the memory cannot hold
+        is refused in one line with XLA's estimate, and so is one whose compiles would take
+        longer than `max_compile_s` in all (None: no bound), with the expected seconds. The
+        stream's own state is left as it was."""
         if not (isinstance(max_people, numbers.Integral) and max_people >= 0):
             raise DataError(f"warm_up: max_people must be a whole number, got {max_people!r}")
-        return self._slots.warm_up(bucket_size(max_people + (1 if self.robot else 0)))
+        if max_compile_s is not None and not (isinstance(max_compile_s, numbers.Real)
+                                              and max_compile_s > 0):
+            raise DataError(f"warm_up: max_compile_s must be seconds above 0 (or None: no "
+                            f"bound), got {max_compile_s!r}")
+        return self._slots.warm_up(bucket_size(max_people + (1 if self.robot else 0)),
+                                   max_compile_s)
 
     # --- Saved and restored: a restarted robot's warm tracks and discs ---------------------
 

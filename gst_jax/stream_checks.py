@@ -22,11 +22,21 @@ from gst_jax.stream_time import MAX_GAP_STEPS
 ROBOT = np.iinfo(np.int32).max
 
 
+def as_array(value, what: str) -> np.ndarray:
+    """`value` as a numpy array, or a one-line refusal of a ragged one (lists of unequal
+    lengths) or of what is no array at all."""
+    try:
+        return np.asarray(value)
+    except (ValueError, TypeError) as error:
+        raise DataError(f"{what} must be an array, got {type(value).__name__} "
+                        f"{str(value)[:60]}: {str(error).split('.')[0]}") from None
+
+
 def checked_frame(ids, positions, non_finite: str = "raise") -> tuple[np.ndarray, np.ndarray]:
     """A frame's ids (M,) and positions (M, 2), or a one-line refusal; with non_finite
     "undetected", the people whose position is not finite left out."""
-    ids = np.asarray(ids)
-    positions = np.asarray(positions)
+    ids = as_array(ids, "a frame's ids")
+    positions = as_array(positions, "a frame's positions")
     if ids.ndim != 1:
         raise DataError(f"a frame's ids must be (M,), got shape {ids.shape}")
     if positions.shape != (len(ids), 2) and not (len(ids) == 0 and positions.size == 0):
@@ -135,6 +145,10 @@ def predictor(run, num_samples: int, mean: bool, convention: str, step_s
             raise DataError(f"Stream: num_samples, mean and convention are a model's; "
                             f"{type(run).__name__} predicts one future per track")
         return run, None, True, predictor_grid(run, step_s)
+    if not hasattr(run, "model_config"):
+        raise DataError(f"Stream: run must be a loaded model (gst_jax.runs.load_model, e.g. "
+                        f"load_model(\"pretrained:crowd_d\")), ConstantVelocity or Standing; "
+                        f"got {type(run).__name__} {str(run)[:60]!r}")
     if step_s is not None:
         raise DataError("Stream: a model steps at its own step_s (its config's); "
                         "give step_s only with a predictor without a model")

@@ -1,8 +1,8 @@
 """A stream step's compiled programs, one per capacity, and each step run within a deadline:
 how a stream's slots (`gst_jax.stream_slots.Slots`) run the model.
 
-A capacity's program is compiled before its first step, checked first where the model is a
-gst_jax one (`gst_jax.predict.compile_checked`: memory, a large crowd; issue 78): at that
+A capacity's program is compiled before its first step, checked (`gst_jax.predict.
+compile_checked`: its memory for every predictor, a large crowd for a gst_jax model): at that
 step, the loop waiting (without a deadline, and for the first program: `Programs.inline`), or
 else in the background, one compile at a time for all of a process's streams
 (`compile_behind`, taken by `collect`). With a deadline, each step runs in a thread of the
@@ -61,7 +61,7 @@ class Programs:
                  regions: Regions | None, gate: Gate | None, adaptation: Adaptation | None,
                  step_s: float, deadline_s: float | None):
         self._step = _jitted_step(model, regions, gate, adaptation, step_s)
-        # The model config whose memory `compile_checked` weighs before a capacity's first
+        # The model config whose crowd `compile_checked` announces before a capacity's first
         # step (issue 78: a gst_jax model's; None for CrowdNav++'s and predictors without one).
         self._config = (model.config if isinstance(model, StreamModel)
                         and model.convention == "gst" else None)
@@ -149,15 +149,12 @@ class Programs:
 
 def _compile(step: Any, args: tuple, config, step_s: float, where: str) -> float:
     """Compile the jitted `step` for `args` (its capacity's program, which jit's cache then
-    holds), checked first where `config` is a gst_jax model's (`compile_checked`: memory, a
-    large crowd; issue 78); logged, and returns its seconds."""
+    holds), checked (`compile_checked`: the memory of every predictor's step; a large crowd
+    where `config` is a gst_jax model's; issues 78, 94); logged, and returns its seconds."""
     capacity = args[1].capacity
     what = f"a stream step over {capacity} slots"
     started = perf_counter()
-    if config is None:
-        step.trace(*args).lower().compile()
-    else:
-        compile_checked(step, args, config, capacity, what, slower_than_s=step_s)
+    compile_checked(step, args, config, capacity, what, slower_than_s=step_s)
     seconds = perf_counter() - started
     logger.info("compiled %s in %.1f s%s", what, seconds, where)
     return seconds

@@ -100,20 +100,27 @@ class Slots:
         self.state, self.frames = outcome[0], self.frames + 1 + idle
         return outcome
 
-    def warm_up(self, largest: int) -> tuple[int, ...]:
+    def warm_up(self, largest: int, max_compile_s: float | None) -> tuple[int, ...]:
         """Compile the step of every capacity from this one up to `largest` (a bucket size),
         on the tracks as they are (the outputs unkept), and return them; the state is left as
-        it was."""
+        it was. The largest compiles first, so that what cannot be afforded is refused in one
+        line (`DataError`) before the rest: a step the memory cannot hold (`compile_checked`),
+        or compiles expected to take longer than `max_compile_s` in all (None: no bound), at
+        the largest's seconds each."""
         capacities = [self.state.capacity]
         while capacities[-1] < largest:
             capacities.append(bucket_size(capacities[-1] + 1))
-        state = self.state
+        state, programs = self.state, self._programs
         try:
-            for capacity in capacities:
+            for capacity in (capacities[-1], *capacities[:-1]):
                 self.state = state
                 self.state = self._resized(capacity)
-                self._programs.run(self._args(self.state, np.zeros(0, np.int32),
-                                              np.zeros((0, 2)), np.zeros(0, np.int32)))
+                args = self._args(self.state, np.zeros(0, np.int32), np.zeros((0, 2)),
+                                  np.zeros(0, np.int32))
+                if capacity == capacities[-1] and capacity not in programs.compiled:
+                    programs.compile_inline(args)
+                    _check_compile_time(capacities, programs.compiled, max_compile_s)
+                programs.run(args)
         finally:
             self.state = state
         return tuple(capacities)
@@ -354,3 +361,19 @@ _initial_state = jax.jit(init_state, static_argnums=(0, 1, 2, 3, 4))
 def _host_tree(tree):
     """Every array of a pytree as numpy (None stays None)."""
     return jax.tree.map(np.asarray, tree)
+
+
+def _check_compile_time(capacities: list[int], compiled: dict[int, float],
+                        max_compile_s: float | None) -> None:
+    """Refuse in one line where compiling the `capacities` not yet `compiled`, each in the
+    seconds the largest took, is expected to take longer than `max_compile_s`."""
+    left = [capacity for capacity in capacities if capacity not in compiled]
+    seconds = compiled[capacities[-1]]
+    if max_compile_s is None or seconds * len(left) <= max_compile_s:
+        return
+    raise DataError(f"warm_up: {capacities[-1]} slots take {len(left) + 1} programs "
+                    f"(capacities {capacities[0]} to {capacities[-1]}), about "
+                    f"{seconds * (len(left) + 1):.0f} s at the {seconds:.1f} s the largest "
+                    f"took, beyond max_compile_s={max_compile_s:g}; warm up to the crowd you "
+                    "expect, or give a larger max_compile_s (None: no bound)")
+

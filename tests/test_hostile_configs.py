@@ -11,6 +11,7 @@ import shutil
 import stat
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -65,6 +66,16 @@ def test_a_model_whose_config_names_a_path_as_its_scene_is_refused_in_one_line(t
         f"wildtrack, crowd or a name of your own data (no / or \\, not starting with . or -, at "
         f"most 120 characters), got '../../../../../../{tmp_path}/escape'")
     assert not any(tmp_path.glob("escape*")) and not work.exists()
+
+
+def test_a_config_nested_deeper_than_json_can_parse_is_refused_in_one_line(tmp_path, capsys):
+    """A field nested 100,000 lists deep was a RecursionError with a traceback (issue 94)."""
+    model = hostile_copy(tmp_path)
+    config = Path(model) / "config.json"
+    config.write_text(config.read_text().replace('"scene"', '"deep": ' + "[" * 100_000
+                                                 + "]" * 100_000 + ', "scene"', 1))
+    message, _ = evaluate(capsys, model)
+    assert message == f"error: {config}: not readable (JSON nested too deeply)"
 
 
 def test_a_data_path_that_is_not_a_trajectory_file_is_never_read(tmp_path, capsys):

@@ -11,10 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gst_jax import navigate
+from gst_jax import navigate, resources
 from gst_jax.conformal import Regions
 from gst_jax.data.readers import read_tracks
-from gst_jax.errors import RunError
+from gst_jax.errors import DataError, RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav import navigation
@@ -151,6 +151,21 @@ def test_episodes_in_chunks_are_those_of_one_program():
             np.testing.assert_array_equal(chunked[name], array, err_msg=name)
     assert [line.split(",")[0] for line in log.getvalue().splitlines()] == [
         "episodes 2/3", "episodes 3/3"]
+
+
+def test_a_chunk_the_memory_cannot_hold_is_refused_with_the_chunk_that_fits(monkeypatch):
+    """`navigate --chunk 100000` under a 4 GiB limit hung at 0 % CPU (issue 94): a chunk's
+    memory (XLA's estimate of its program) is weighed before it runs. The program of 2
+    episodes above (from the persistent cache), with 1 kB left once it is compiled (the
+    compiler's own room is tested in test_predict)."""
+    env, params = CrowdNav.with_predictor(CONSTANT_VELOCITY, regions=Regions("dtaci", 0.1))
+    planner = SamplingMPC(num_plans=66, horizon=env.pred_len, step_s=params.step_s)
+    monkeypatch.setattr(navigation, "check_compiler_room", lambda what: None)
+    monkeypatch.setattr(resources, "available_memory", lambda device: (1000, "a test's limit"))
+    with pytest.raises(DataError, match=r"^2 navigation episodes at once needs \d+ KiB "
+                       r"\(XLA's estimate\); 1000 bytes is available \(a test's limit\); use "
+                       r"--chunk 1 or less$"):
+        run_episodes(env, params, planner, planner.init(), 3, seed=1000, chunk=2)
 
 
 def test_a_model_of_another_time_step_is_refused(tmp_path):

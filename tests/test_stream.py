@@ -138,6 +138,28 @@ def test_bad_frames_are_refused_in_one_line():
         player.step([7], [[np.nan, 0]])
     with pytest.raises(DataError, match="track ids must be integers from 0"):
         player.step([-2], [[0, 0]])
+    # Ragged lists were numpy's ValueError with a traceback (issue 94).
+    with pytest.raises(DataError, match=r"^a frame's positions must be an array, got list"):
+        player.step([1, 2], [[0, 0], [1]])
+    with pytest.raises(DataError, match=r"^forget: track ids must be an array, got list"):
+        player.forget([[1, 2], [3]])
+
+
+def test_a_streams_arguments_of_the_wrong_kind_are_refused_in_one_line(sim_run):
+    """Each was an AttributeError, a ValueError from deeper down, or accepted (issue 94)."""
+    for make, problem in [
+            (lambda: stream.Stream("pretrained:crowdnav_sim"),
+             r"^Stream: run must be a loaded model .* got str 'pretrained:crowdnav_sim'$"),
+            (lambda: stream.Stream(sim_run, regions="dtaci"),
+             r"^Stream: regions must be gst_jax.conformal.Regions .* got str 'dtaci'$"),
+            (lambda: stream.Stream(sim_run, non_finite=np.array(["raise"])),
+             r"^Stream: non_finite must be one of \('raise', 'undetected'\), got array"),
+            (lambda: stream.Stream(sim_run, convention="bogus"),
+             r"^convention must be 'gst' or 'crowdnav', got 'bogus'$"),
+            (lambda: stream.Stream(sim_run, convention="crowdnav", num_samples=20, mean=False),
+             r"^CrowdNav\+\+'s predictor predicts the mean only")]:
+        with pytest.raises(DataError, match=problem):
+            make()
 
 
 def test_the_pure_step_vmaps_over_robots():

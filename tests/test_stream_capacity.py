@@ -22,6 +22,8 @@ import pytest
 from gst_jax import conformal, resources, stream, stream_fallback, stream_programs
 from gst_jax.adaptation import SpeedScale
 from gst_jax.errors import DataError
+from gst_jax.predict import checks as predict_checks
+from gst_jax.predictors import ConstantVelocity
 from gst_jax.runs import load_model
 
 REGIONS = conformal.Regions("dtaci", 0.1)
@@ -256,6 +258,47 @@ def test_a_capacity_whose_compiling_memory_cannot_hold_is_refused_in_one_line(si
     with pytest.raises(DataError, match=r"^a stream step over 16 slots: XLA's compiler needs"):
         player.step(np.arange(12), xy[1])
     assert player._slots._programs.compiling is None and player.state.capacity == 8
+
+
+def test_every_predictors_step_is_weighed_against_the_memory_left(monkeypatch):
+    """Only a gst_jax model's steps were weighed: CrowdNav++'s predictor over 2,048 people
+    under a 2.2 GiB limit ran into XLA's RESOURCE_EXHAUSTED (issue 94). Constant velocity's
+    step, with 1 kB left once compiled (the compiler's own room: the test above)."""
+    monkeypatch.setattr(predict_checks, "check_compiler_room", lambda what, device=None: None)
+    monkeypatch.setattr(resources, "available_memory",
+                        lambda device: (1000, "under a test's limit"))
+    player = stream.Stream(ConstantVelocity(obs_len=5, pred_len=P), step_s=0.25,
+                           regions=REGIONS)
+    with pytest.raises(DataError, match=r"^a stream step over 8 slots needs \d+ KiB \(XLA's "
+                       r"estimate\); 1000 bytes is available \(under a test's limit\); use "
+                       r"fewer people or more memory$"):
+        player.step(np.arange(4), walks(4, 1)[0])
+
+
+def test_warm_up_refuses_what_it_cannot_afford_before_compiling_the_rest(monkeypatch, caplog):
+    """warm_up(10**6) compiled 57 programs in 7 minutes of 31,250 (issue 94): the largest
+    compiles first, and the warm-up is refused in one line where the compiles would take
+    longer than max_compile_s at its seconds each, or where its step needs more memory than
+    is left; nothing else compiled, the stream as it was."""
+    caplog.set_level(logging.INFO, logger="gst_jax.stream")
+    player = stream.Stream(ConstantVelocity(obs_len=5, pred_len=P), step_s=0.25)
+    with pytest.raises(DataError, match=r"^warm_up: 48 slots take 5 programs \(capacities 8 to "
+                       r"48\), about \d+ s at the \d+\.\d s the largest took, beyond "
+                       r"max_compile_s=1e-06; warm up to the crowd you expect, or give a "
+                       r"larger max_compile_s \(None: no bound\)$"):
+        player.warm_up(40, max_compile_s=1e-6)
+    compiled = [r.getMessage().split(" in ")[0] for r in caplog.records
+                if r.getMessage().startswith("compiled")]
+    assert compiled == ["compiled a stream step over 48 slots"]
+    assert player.state.capacity == 8
+    monkeypatch.setattr(predict_checks, "check_compiler_room", lambda what, device=None: None)
+    monkeypatch.setattr(resources, "available_memory",
+                        lambda device: (1000, "under a test's limit"))
+    with pytest.raises(DataError, match=r"^a stream step over 64 slots needs"):
+        player.warm_up(60)
+    assert len(caplog.records) == 1 and player.state.capacity == 8
+    with pytest.raises(DataError, match=r"^warm_up: max_compile_s must be seconds above 0"):
+        player.warm_up(8, max_compile_s=0)
 
 
 def test_a_capacity_that_fails_to_compile_gets_constant_velocity_while_it_is_needed(

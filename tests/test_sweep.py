@@ -72,6 +72,10 @@ def test_vmapped_sweep_members_equal_single_runs_and_results_are_written(tmp_pat
     # Resumed in the same process, the sweep compiles nothing again: its restored state is
     # placed as the fresh one was.
     assert [r["compiles"] for r in WorkDir(tmp_path).read_metrics()][2:] == [0, 0]
+    # Its training time holds the epochs before the crash too (issue 94: a resumed sweep
+    # recorded this process's 1.47 s of 63).
+    epoch_times = [r["epoch_time_s"] for r in WorkDir(tmp_path).read_metrics()]
+    assert sum(epoch_times[:2]) < results["train_time_s"] <= sum(epoch_times)
     shown = log.getvalue()
     assert f"resuming {tmp_path} after epoch 2" in shown
     assert "epoch 3 loss" in shown and "epoch 4 loss" in shown

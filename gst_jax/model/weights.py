@@ -205,7 +205,7 @@ def is_weights(spec: str | Path) -> bool:
         return True
     try:
         return json.loads(_read_config_bytes(folder / CONFIG_FILE)).get("format") == FORMAT
-    except (OSError, ValueError, AttributeError, RunError):
+    except (OSError, ValueError, AttributeError, RecursionError, RunError):
         return False
 
 
@@ -300,6 +300,8 @@ def read_config(spec: str | Path) -> dict:
                        f"{CONFIG_FILE})") from None
     except (OSError, ValueError) as error:
         raise RunError(f"{path}: not readable ({error})") from None
+    except RecursionError:
+        raise RunError(f"{path}: not readable (JSON nested too deeply)") from None
     if not isinstance(config, dict) or config.get("format") != FORMAT:
         raise RunError(f"{path}: not a gst_jax weights config (no \"format\": \"{FORMAT}\")")
     for key in ("sha256", "model"):

@@ -48,6 +48,7 @@ from gst_jax.predict.checks import (
     LONG_CALL_S,
     SUGGESTED_CANDIDATES,
     check_compiler_room,
+    check_memory,
     compile_checked,
     crowd_notice,
 )
@@ -61,7 +62,7 @@ __all__ = [
     # re-exported: chunking.py, cost.py, checks.py and gst_jax.resources
     "Chunking", "DEFAULT_MEMORY_BUDGET", "CHUNKING_SLACK",
     "Estimate", "estimate", "operation_count", "CPU_RUNTIME_MARGIN",
-    "check_compiler_room", "crowd_notice", "compile_checked", "COMPILER_BYTES",
+    "check_compiler_room", "check_memory", "crowd_notice", "compile_checked", "COMPILER_BYTES",
     "SUGGESTED_CANDIDATES", "CANDIDATES_PAY_ABOVE", "LONG_CALL_S",
     "CPU_OPERATIONS_PER_CORE_SECOND",
     "available_memory", "cgroup_headroom", "CGROUP_ROOT", "NO_LIMIT",

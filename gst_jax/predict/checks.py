@@ -3,6 +3,7 @@ and a word where the crowd is large for the exact model.
 
     check_compiler_room("python -m gst_jax.predict")       # before anything compiles
     cost = compile_checked(program, args, config, slots, "a stream step over 320 slots")
+    check_memory(cost, device, "1000 episodes at once", "use --chunk 100")
 
 Before each compile, the memory left (`gst_jax.resources.available_memory`: the least of
 MemAvailable, the cgroup limit's headroom and the address-space limit's) must hold XLA's
@@ -12,7 +13,7 @@ whose call is expected to take a second or more is announced in one line (a warn
 its first call, with its expected time (`operation_count`) and XLA's estimate of its memory,
 naming the option that makes it cheap, candidates= (`crowd_notice`). `make_predict` does all
 this for its programs, `compile_checked` for any jitted program over a crowd (a stream's
-step).
+step), and `check_memory` weighs any compiled program's estimate (navigation's episodes).
 """
 
 from __future__ import annotations
@@ -93,30 +94,40 @@ def crowd_notice(config: ModelConfig, slots: int, cost: Estimate | Chunking,
             "docs/MODEL.md 2.4)")
 
 
-def compile_checked(program, args: tuple, config: ModelConfig, slots: int, what: str,
-                    slower_than_s: float | None = None) -> Estimate:
+def compile_checked(program, args: tuple, config: ModelConfig | None, slots: int, what: str,
+                    slower_than_s: float | None = None, fix: str | None = None) -> Estimate:
     """Before the jitted `program` first runs on `args` over a crowd of `slots` people (a
-    stream's step at a new capacity): refuse in one line where the memory left cannot hold
-    the compiler; compile it (jit's cache keeps it: the call that follows does not compile
-    again); refuse in one line where XLA's estimate of a call exceeds the memory available;
-    warn in one line where the crowd is large for the exact model and a call is expected to
-    take `slower_than_s` or more (`crowd_notice`; a robot's stream: its model's step_s).
-    Returns the estimate. `what` names the work in those lines ("a stream step over 320
-    slots")."""
+    stream's step at a new capacity, a chunk of navigation episodes): refuse in one line
+    where the memory left cannot hold the compiler; compile it (jit's cache keeps it: the
+    call that follows does not compile again); refuse in one line where XLA's estimate of a
+    call exceeds the memory available (`fix`: what to do then; default: fewer people, more
+    memory, and for a gst_jax model candidates); where `config` is a gst_jax model's, warn
+    in one line where the crowd is large for the exact model and a call is expected to take
+    `slower_than_s` or more (`crowd_notice`; a robot's stream: its model's step_s). Returns
+    the estimate. `what` names the work in those lines ("a stream step over 320 slots")."""
     leaves = [leaf for leaf in jax.tree.leaves(args) if hasattr(leaf, "shape")]
     devices = devices_of(leaves[0]) if leaves else jax.devices()[:1]
     check_compiler_room(what, devices[0])
     traced = program.trace(*args)
     cost = estimate(traced.lower().compile(), traced.jaxpr, devices)
-    available = resources.available_memory(devices[0])
+    check_memory(cost, devices[0], what, fix or (
+        "use fewer people or more memory" if config is None else
+        f"use fewer people, candidates={SUGGESTED_CANDIDATES} or more memory"))
+    if config is not None and (
+            notice := crowd_notice(config, slots, cost, devices[0], what, slower_than_s)):
+        warnings.warn(notice, stacklevel=2)
+    return cost
+
+
+def check_memory(cost: Estimate, device: jax.Device, what: str, fix: str) -> None:
+    """Refuse in one line (`DataError`) where XLA's estimate of a call of a compiled program
+    (`cost`) exceeds the memory this process may still take on `device`; `what` names the
+    work, `fix` what to do ("use fewer people or more memory")."""
+    available = resources.available_memory(device)
     if available is not None and cost.bytes_needed is not None and (
             cost.bytes_needed > available[0]):
         raise DataError(f"{what} needs {size(cost.bytes_needed)} (XLA's estimate); "
-                        f"{size(available[0])} is available ({available[1]}); use fewer "
-                        f"people, candidates={SUGGESTED_CANDIDATES} or more memory")
-    if notice := crowd_notice(config, slots, cost, devices[0], what, slower_than_s):
-        warnings.warn(notice, stacklevel=2)
-    return cost
+                        f"{size(available[0])} is available ({available[1]}); {fix}")
 
 
 def _seconds(seconds: float) -> str:

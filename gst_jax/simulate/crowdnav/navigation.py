@@ -23,10 +23,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gst_jax import resources
 from gst_jax.adaptation import METHODS
 from gst_jax.conformal import Regions
 from gst_jax.errors import RunError
 from gst_jax.paired import paired_means, paired_rates
+from gst_jax.predict import check_compiler_room, check_memory, estimate
 from gst_jax.progress import Progress
 from gst_jax.simulate.crowdnav.environment import (
     COLLISION,
@@ -151,13 +153,22 @@ def run_episodes(env: CrowdNav, params: EnvParams, planner: Planner, init: Plann
     first `keep` episodes the robot's (K, S+1, 2) and humans' (K, S+1, H, 2) positions
     (still after the end) and the goal (K, 2). Episode i plays from the i-th key of
     split(key(seed), count) in a lane of its own, whatever `chunk`; on a CPU the number of
-    lanes can change the rounding of the positions (docs/navigation.md).
-    `progress` counts the episodes done, with an ETA."""
+    lanes can change the rounding of the positions (docs/navigation.md). A chunk whose memory
+    (XLA's estimate) this process cannot hold is refused in one line (`DataError`) with the
+    chunk that fits. `progress` counts the episodes done, with an ETA."""
     keys = jax.random.split(jax.random.key(seed), count)
     size = min(count, chunk)
     started = time.perf_counter()
-    compiled = jax.jit(jax.vmap(_episode(env, params, planner, init))).lower(
-        keys[:size]).compile()
+    what = f"{size} navigation episodes at once"
+    check_compiler_room(what)
+    traced = jax.jit(jax.vmap(_episode(env, params, planner, init))).trace(keys[:size])
+    compiled = traced.lower().compile()
+    cost = estimate(compiled, traced.jaxpr, jax.devices()[:1])
+    available = resources.available_memory(jax.devices()[0])
+    if available and cost.bytes_needed:
+        # The memory grows with the chunk: the fix names the chunk that fits.
+        fits = max(1, size * available[0] // cost.bytes_needed)
+        check_memory(cost, jax.devices()[0], what, f"use --chunk {fits} or less")
     compile_s = time.perf_counter() - started
     started = time.perf_counter()
     parts = []
