@@ -10,6 +10,7 @@ import json
 import logging
 import subprocess
 import sys
+import threading
 
 import numpy as np
 import pytest
@@ -18,7 +19,9 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer
 
 from gst_jax.conformal import Regions
+from gst_jax.errors import DataError
 from gst_jax.io import ros2
+from gst_jax.predictors import ConstantVelocity
 from gst_jax.runs import load_model
 from gst_jax.stream import Stream, StreamOutput
 from gst_jax.stream_commands import main
@@ -232,6 +235,42 @@ def test_a_message_after_a_pause_beyond_the_horizon_is_skipped_and_the_replay_go
         for track, future in zip(out.ids.tolist(), out.futures):
             np.testing.assert_allclose(paths[chr(track)], future, rtol=0, atol=1e-5)
     assert len(paths) == 2                                  # a and c, not b
+
+
+def test_a_bag_stamped_in_milliseconds_is_refused_instead_of_skipped_message_by_message(
+        run, tmp_path, caplog):
+    """Stamps in milliseconds read as seconds put 0.25 s frames 250 s apart: every message
+    after the first was skipped, a warning each, and nothing predicted (issue 92). The replay
+    ends at the tenth message in one line that names the likely cause, writing nothing."""
+    names, positions = people_at(0)
+    bag = tmp_path / "milliseconds.mcap"
+    write_people(bag, [(people_message(names, positions + 0.1 * k, START_NS + k * 1000 * STEP_NS),
+                        START_NS + k * STEP_NS) for k in range(12)])
+    with pytest.raises(DataError, match=rf"^{bag}, message 10 on {TOPIC}: none of the 9 messages "
+                       r"after the first came within the stream's max_gap_s \(2.5 s\) of the one "
+                       r"before \(this one comes 2250.000 s after the last frame taken\): are the "
+                       r"header stamps in seconds and nanoseconds\?"):
+        ros2.replay(run, bag, tmp_path / "out.mcap", topic=TOPIC, regions=None)
+    assert not list(tmp_path.glob("out.mcap*"))
+
+
+def test_a_replay_keeps_out_of_the_log_only_its_own_streams_refusals(caplog):
+    """The replay reports the frames its stream refuses itself, so it keeps the stream's own
+    record of them out of the log; another stream of the process, in another thread, still
+    logs its own."""
+    def refused_frame(player):
+        player.step([1], [[0.0, 0.0]], time=1.0)
+        with pytest.raises(DataError, match="comes at or before the last one"):
+            player.step([1], [[0.0, 0.0]], time=0.5)
+
+    def constant_velocity():
+        return Stream(ConstantVelocity(obs_len=5, pred_len=5), step_s=0.25)
+    with caplog.at_level(logging.ERROR, logger="gst_jax.stream"), ros2._refusals_reported_here():
+        refused_frame(constant_velocity())                        # the replay's own thread
+        other = threading.Thread(target=refused_frame, args=(constant_velocity(),))
+        other.start()
+        other.join()
+    assert [r.thread for r in caplog.records] == [other.ident]
 
 
 def test_bags_that_cannot_be_replayed_are_refused_in_one_line(bag, tmp_path):

@@ -42,6 +42,7 @@ import logging
 import math
 import os
 import re
+import threading
 import time
 from pathlib import Path
 from typing import Any, Iterator, NamedTuple
@@ -70,6 +71,10 @@ PATH_COLOUR = {"r": 1.0, "g": 0.5, "b": 0.0, "a": 1.0}
 DISC_COLOUR = {"r": 0.2, "g": 0.5, "b": 1.0, "a": 0.25}
 # `replay`'s discs unless told otherwise: the stream's default method at a miscoverage of 0.1.
 DEFAULT_REGIONS = Regions("dtaci", 0.1)
+# A bag whose first messages all come more than max_gap_s after the one before is refused
+# after this many (stamps in the wrong unit: milliseconds as seconds put a 10 Hz tracker's
+# messages 100 s apart), rather than skipping every message with a warning each.
+SKIPPED_FROM_THE_START = 10
 
 # The fields of each message read or written, every type named in full (so that a message's
 # dependencies are the types its fields name). From ros2/common_interfaces (branch jazzy;
@@ -341,12 +346,20 @@ def replay(run, source: str | Path, out: str | Path, *, topic: str = PEOPLE_TOPI
                     output = stream.step(names.ids_of(frame.names), frame.positions,
                                          time=frame.time_s)
                 except FrameGap as gap:
+                    skipped += 1
+                    if frames == 1 and skipped + 1 >= SKIPPED_FROM_THE_START:
+                        raise DataError(
+                            f"{where}: none of the {skipped} messages after the first came "
+                            f"within the stream's max_gap_s ({gap.max_gap_s:g} s) of the one "
+                            f"before (this one comes {gap.gap_s:.3f} s after the last frame "
+                            "taken): are the header stamps in seconds and nanoseconds? "
+                            "(milliseconds read as seconds put a 10 Hz tracker's messages 100 "
+                            "s apart)") from None
                     logger.warning(
                         "%s (stamp %.3f s) skipped: it comes %.3f s after the last frame, more "
                         "than the stream's max_gap_s (%g s); the next message within %g s of it "
                         "starts the tracks afresh", where, frame.time_s, gap.gap_s, gap.max_gap_s,
                         gap.max_gap_s)
-                    skipped += 1
                 except DataError as error:
                     raise DataError(f"{where} (stamp {frame.time_s:.3f} s): {error}") from None
                 else:
@@ -372,10 +385,14 @@ def replay(run, source: str | Path, out: str | Path, *, topic: str = PEOPLE_TOPI
 @contextlib.contextmanager
 def _refusals_reported_here():
     """The stream's own log records of the frames it refuses (stream_time's errors) kept out of
-    the log while a replay runs: the replay reports each itself, once (the warning of a message
-    it skips, or the error it ends on)."""
+    the log while a replay runs, in the replay's thread only (other streams of the process log
+    theirs): the replay reports each itself, once (the warning of a message it skips, or the
+    error it ends on)."""
+    replaying = threading.get_ident()
+
     def unreported(record: logging.LogRecord) -> bool:
-        return not (record.module == "stream_time" and record.levelno >= logging.ERROR)
+        return not (record.module == "stream_time" and record.levelno >= logging.ERROR
+                    and record.thread == replaying)
 
     logger.addFilter(unreported)
     try:
