@@ -36,6 +36,8 @@ LCAS = DataConfig(scene="lcas")
 # every file (--fps 12.5: 5 frame ids a row).
 WILDTRACK = DataConfig(scene="wildtrack", data=str(TRAJNET / "wildtrack.ndjson"), fps=12.5)
 GRID = TimeGrid()
+# WILDTRACK as annotated: 2 Hz rows, a model of 0.5 s steps (pretrained:wildtrack_d's grid).
+WILDTRACK_2HZ, GRID_2HZ = DataConfig(scene="wildtrack"), TimeGrid(step_s=0.5)
 # The evaluator's defaults: 9 observed rows, 12 predicted.
 OBS_LENGTH, PRED_LENGTH = 9, 12
 
@@ -149,18 +151,20 @@ def with_scenes(source: Path, scene_ids: list[int], path: Path) -> Path:
     return path
 
 
-@pytest.mark.parametrize("config", [LCAS, WILDTRACK], ids=["lcas", "wildtrack"])
-def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(config,
+# WILDTRACK at --fps 12.5, TrajNet++'s baselines' reading, is paired in the Col-I test below.
+@pytest.mark.parametrize("config, grid", [(LCAS, GRID), (WILDTRACK_2HZ, GRID_2HZ)],
+                         ids=["lcas", "wildtrack-2hz"])
+def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(config, grid,
                                                                              tmp_path):
     source = TRAJNET / f"{config.scene}.ndjson"
     # The test split's scenes: those within the frames of its windows, in the file's order.
-    (_, first, last), = data.split_frames(config, "test", GRID)
+    (_, first, last), = data.split_frames(config, "test", grid)
     expected = [row["id"] for row in scene_rows(source)
                 if first <= row["s"] and row["e"] <= last]
-    scene_set = load_scenes(config, "test", GRID)
+    scene_set = load_scenes(config, "test", grid)
     submission = tmp_path / "submission.ndjson"
     write_scene_predictions(submission, scene_set, noisy_constant_velocity(scene_set.windows, 3),
-                            GRID)
+                            grid)
     written = scene_rows(submission)
     assert [row["id"] for row in written] == expected and len(expected) > 150
     by_id = {row["id"]: row for row in scene_rows(source)}
@@ -168,7 +172,7 @@ def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(c
 
     truth = with_scenes(source, expected, tmp_path / "truth.ndjson")
     official = official_figures(truth, submission)
-    ours = evaluate_prediction_file(submission, config, "test", with_kde=False)
+    ours = evaluate_prediction_file(submission, config, "test", grid=grid, with_kde=False)
     assert_same_figures(ours["trajnet"], official, samples=3)
     assert official["col_ii_percent"] > 0                     # not a vacuous match
     # TrajNet++'s top-k FDE is the best-ADE sample's: not the least FDE, gst_jax's minFDE.
@@ -195,12 +199,12 @@ def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(c
     (tmp_path / "swapped.ndjson").write_text("\n".join(swapped) + "\n")
     with pytest.raises(DataError, match=r"swapped.ndjson:1: scene row 1 is scene .* pairs the "
                                         "two files' scenes in order"):
-        evaluate_prediction_file(tmp_path / "swapped.ndjson", config, "test")
+        evaluate_prediction_file(tmp_path / "swapped.ndjson", config, "test", grid=grid)
     (tmp_path / "short.ndjson").write_text("\n".join(lines[:heads[0] + 1]
                                                      + lines[heads[0] + 2:]) + "\n")
     with pytest.raises(DataError, match="has no prediction 0 at frame .*\"frame numbers are not "
                                         "consistent"):
-        evaluate_prediction_file(tmp_path / "short.ndjson", config, "test")
+        evaluate_prediction_file(tmp_path / "short.ndjson", config, "test", grid=grid)
 
 
 def test_scenes_the_model_cannot_read_row_for_row_are_refused_with_the_fix(tmp_path):
