@@ -50,11 +50,14 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 # Worker processes stay far below Linux's limit of 65530 memory maps: no test file added more
 # than 5,400 of them, and a worker held 10,300 at most after its files (2-core EPYC, 599 tests).
 MAPS_KEPT = 30_000
-# The longest files (a worker's seconds on the 2-core VM: 160, 109, 102, 90, 74, 66, 58, 54)
-# start first, so that no worker is left with one of them while the other has finished.
-LONGEST_FIRST = ("test_train.py", "test_stops_and_faults.py", "test_parallel.py",
-                 "test_docs.py", "test_own_data.py", "test_parity.py", "test_sweep.py",
-                 "test_pretrained.py")
+# The longest files start first (pyproject.toml keeps xdist to this order), so that no worker
+# is left with one of them while the other has finished: their slowest tests' seconds, summed,
+# on the 2-core VM beside a training (2026-12-07): 239, 167, 167, 145, 115, 112, 104, 98, 75,
+# 65, 54, 50.
+LONGEST_FIRST = ("test_train.py", "test_stops_and_faults.py", "test_docs.py",
+                 "test_parallel.py", "test_own_data.py", "test_trajnet_submission.py",
+                 "test_sweep.py", "test_numerics.py", "test_install.py", "test_navigation.py",
+                 "test_pretrained.py", "test_parity.py")
 
 
 def pytest_collection_modifyitems(items):
