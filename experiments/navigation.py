@@ -30,16 +30,15 @@ import time
 from _common import add_results_flags, results_folder
 from gst_jax.runs import load_model
 from gst_jax.simulate.crowdnav.environment import NO_SHIFT, POLICY_SHIFT, SPEED_SHIFT
-from gst_jax.simulate.crowdnav.navigation import (
+from gst_jax.simulate.crowdnav.navigation import described_run, evaluate_described
+from gst_jax.simulate.crowdnav.planner import SamplingMPC
+from gst_jax.simulate.crowdnav.records import (
     compare,
-    described_run,
-    evaluate_described,
     format_table,
     record_name,
     row_label,
     setting,
 )
-from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
 # A scenario, how the humans walk: (policy, reactive, num_humans, shift). Issue 60: CrowdNav++'s
 # default humans (20 ORCA, ignoring the robot) and its social force.

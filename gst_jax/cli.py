@@ -468,7 +468,7 @@ def add_prediction_flags(parser: argparse.ArgumentParser) -> None:
     """--model, --regions, --alpha, --adapt, --fresh-tracks: what a simulated robot plans
     against."""
     from gst_jax.adaptation import METHODS
-    from gst_jax.simulate.crowdnav.navigation import DEFAULT_MODEL, REGIONS
+    from gst_jax.simulate.crowdnav.records import DEFAULT_MODEL, REGIONS
 
     parser.add_argument("--model", default=DEFAULT_MODEL, type=model_spec,
                         help="mpc's GST (default: %(default)s)")

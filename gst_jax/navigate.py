@@ -16,7 +16,7 @@ from pathlib import Path
 from gst_jax import cli
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
-from gst_jax.simulate.crowdnav import navigation
+from gst_jax.simulate.crowdnav import navigation, records
 from gst_jax.simulate.crowdnav.crowds import write_crowds
 from gst_jax.simulate.crowdnav.planner import SamplingMPC
 
@@ -63,7 +63,7 @@ def navigate(args) -> None:
     result = navigation.evaluate_described(described, gst, args.plans, args.episodes, args.seed,
                                            out, args.gif, overwrite=args.overwrite,
                                            chunk=args.chunk, progress=Progress())
-    print(json.dumps(result, indent=2) if args.json else navigation.summary(result, out))
+    print(json.dumps(result, indent=2) if args.json else records.summary(result, out))
 
 
 if __name__ == "__main__":

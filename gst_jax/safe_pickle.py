@@ -29,6 +29,9 @@ file may then make a few kB, whatever else tells how large its tensors should be
 `gst_jax.crowdnav.load` reads a checkpoint so, within a fixed budget. `read_args` reads at most
 MAX_ARGS_BYTES.
 
+One job, though over 400 lines: an unpickler that admits a closed list of globals, and the
+bounds on what it allocates, which must see every object it builds.
+
 Nor does either read anything but a regular file within its bound (a FIFO would block the
 read, a link to /dev/zero never end it): `gst_jax.regular_files` refuses it unread.
 """

@@ -52,6 +52,10 @@ Constant velocity with the same discs, the baseline a model has to beat, needs n
 A restarted robot resumes with its tracks and discs warm: `stream.save(path)` writes them to
 one file (atomically; `gst_jax.stream_file`), `Stream(run, ...).load(path)` reads them back
 into a stream built as that one was, which then steps as the saved one would have, bit for bit.
+
+One job, though over 400 lines: the host class, of which most lines are its docstrings (each
+setting a robot's engineer chooses, with its default and why); its code is a thin layer over
+`stream_core`, `stream_slots`, `stream_time` and `stream_file`.
 """
 
 from __future__ import annotations

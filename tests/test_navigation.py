@@ -17,7 +17,7 @@ from gst_jax.data.readers import read_tracks
 from gst_jax.errors import DataError, RunError
 from gst_jax.progress import Progress
 from gst_jax.runs import load_model
-from gst_jax.simulate.crowdnav import navigation
+from gst_jax.simulate.crowdnav import navigation, records
 from gst_jax.simulate.crowdnav.crowds import Condition, crowd_rows, person_ids, record_episodes
 from gst_jax.simulate.crowdnav.environment import (
     COLLISION,
@@ -36,15 +36,17 @@ from gst_jax.simulate.crowdnav.navigation import (
     episode_measures,
     max_steps,
     navigation_measures,
-    paired_lines,
     per_episode,
+    run_episodes,
+)
+from gst_jax.simulate.crowdnav.planner import SamplingMPC
+from gst_jax.simulate.crowdnav.records import (
+    paired_lines,
     record_name,
     row_label,
-    run_episodes,
     same_episodes,
     summary,
 )
-from gst_jax.simulate.crowdnav.planner import SamplingMPC
 from gst_jax.testing.drawn import gif_frames, pixels_near
 
 
@@ -269,7 +271,7 @@ def test_the_command_names_each_scenarios_record_and_refuses_a_shift_it_cannot_m
     seen = {}
     monkeypatch.setattr(navigation, "evaluate", lambda env, params, planner, count, seed, out,
                         described, *rest, **options: seen.update(env=env, **described) or {})
-    monkeypatch.setattr(navigation, "summary", lambda result, out=None: "")
+    monkeypatch.setattr(records, "summary", lambda result, out=None: "")
     navigate.main(["evaluate", "--planner", "truth-mpc", "--reactive", "--num-humans", "35",
                    "--shift", "speed", "--workdir", str(tmp_path)])
     env = seen.pop("env")

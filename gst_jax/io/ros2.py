@@ -32,6 +32,10 @@ messages it receives, and turns the markers' dicts into messages with
 `mcap-ros2-support` packages (`pip install "gst_jax[ros]"`), imported only by the functions that
 touch a bag, which decode with the schema text stored in the bag and encode with the
 definitions below.
+
+One job, though over 400 lines: a bag of people in, a bag of predictions out; the message
+definitions, the decoding of the one and the encoding of the other stay beside the replay that
+joins them, so that what a replay writes is read against what it reads.
 """
 
 from __future__ import annotations
