@@ -421,14 +421,17 @@ def phase(name: str, model: str, cache: str) -> dict:
     result["load_s"] = time.perf_counter() - loading
     regions = Regions("dtaci", 0.1)
     building = time.perf_counter()
+    gate = {"max_speed": None if name == "no-rule" else 2.5}
     player = Stream(run, regions=regions, compilation_cache=cache, non_finite="undetected",
-                    max_speed=None if name == "no-rule" else 2.5)
+                    **gate)
     if name == "restart":
         player.step([0, 1], [[0.0, 0.0], [1.0, 1.0]])          # seen once: not predicted yet
         out = player.step([0, 1], [[0.2, 0.0], [1.0, 1.2]])
         result.update(first_step_s=time.perf_counter() - building, first_ids=len(out.ids),
                       first_prediction_at=time.time())
-        player = Stream(run, regions=regions, non_finite="undetected")
+        # The stream cold's warm_up compiled (the same gate), so that its programs are read
+        # from the cache: a stream of another gate is another program.
+        player = Stream(run, regions=regions, non_finite="undetected", **gate)
     if name == "tracker":
         result["feeds"] = tracker_feeds(lambda: Stream(
             run, regions=regions, compilation_cache=cache, deadline_s=None))
@@ -448,8 +451,7 @@ def phase(name: str, model: str, cache: str) -> dict:
     if name in ("cold", "no-warm-up"):
         result["growth"] = grow(player, count_compiles)
     if name in ("cold", "no-rule"):
-        player = Stream(run, regions=regions, non_finite="undetected",
-                        max_speed=None if name == "no-rule" else 2.5)
+        player = Stream(run, regions=regions, non_finite="undetected", **gate)
         player.warm_up(64)
         result["tracker"] = tracker_loop(player, count_compiles)
     return result
