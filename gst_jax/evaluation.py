@@ -23,7 +23,7 @@ import numpy as np
 
 from gst_jax import data, graph, metrics, trajnet_metrics
 from gst_jax.config import EVAL_TAU, DataConfig, ModelConfig, TimeGrid
-from gst_jax.data.trajnet import SceneSet, load_scenes
+from gst_jax.data.trajnet import SceneSet, load_scenes, rows_grid
 from gst_jax.errors import DataError
 from gst_jax.model import Controls, Params
 from gst_jax.parallel import Devices
@@ -314,12 +314,16 @@ def write_run_predictions(run, data_config: DataConfig, split: str, path: Path, 
 
 
 def evaluate_prediction_file(path: Path, data_config: DataConfig, split: str, *,
-                             grid: TimeGrid = TimeGrid(), with_kde: bool = True,
+                             grid: TimeGrid | None = None, with_kde: bool = True,
                              windows: bool = False) -> dict[str, Any]:
     """Score a TrajNet++ prediction file (ours or another model's) on the time grid of the
     predictions, with the metrics of `evaluate_params`: against a split's windows, or, for a
     TrajNet++ file's own scenes (`load_scenes`; not with `windows`), against the windows of
-    its scenes, with TrajNet++'s own figures beside them as `result["trajnet"]`."""
+    its scenes, with TrajNet++'s own figures beside them as `result["trajnet"]`. grid: the
+    predictions' steps; None: a submission's, one a row of its file (`rows_grid`:
+    WILDTRACK's 0.5 s), or the paper's for the windows."""
+    if grid is None:
+        grid = TimeGrid() if windows else rows_grid(data_config, split)
     scene_set = None if windows else load_scenes(data_config, split, grid)
     if scene_set is not None:
         result = _score_submission(path, scene_set, grid, with_kde)

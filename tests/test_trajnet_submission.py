@@ -172,7 +172,8 @@ def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(c
 
     truth = with_scenes(source, expected, tmp_path / "truth.ndjson")
     official = official_figures(truth, submission)
-    ours = evaluate_prediction_file(submission, config, "test", grid=grid, with_kde=False)
+    # `evaluate --predictions` steps once a row of the file: WILDTRACK's 2 Hz, 0.5 s.
+    ours = evaluate_prediction_file(submission, config, "test", with_kde=False)
     assert_same_figures(ours["trajnet"], official, samples=3)
     assert official["col_ii_percent"] > 0                     # not a vacuous match
     # TrajNet++'s top-k FDE is the best-ADE sample's: not the least FDE, gst_jax's minFDE.
@@ -199,12 +200,12 @@ def test_a_submission_for_the_test_scenes_is_paired_and_scored_as_trajnet_does(c
     (tmp_path / "swapped.ndjson").write_text("\n".join(swapped) + "\n")
     with pytest.raises(DataError, match=r"swapped.ndjson:1: scene row 1 is scene .* pairs the "
                                         "two files' scenes in order"):
-        evaluate_prediction_file(tmp_path / "swapped.ndjson", config, "test", grid=grid)
+        evaluate_prediction_file(tmp_path / "swapped.ndjson", config, "test")
     (tmp_path / "short.ndjson").write_text("\n".join(lines[:heads[0] + 1]
                                                      + lines[heads[0] + 2:]) + "\n")
     with pytest.raises(DataError, match="has no prediction 0 at frame .*\"frame numbers are not "
                                         "consistent"):
-        evaluate_prediction_file(tmp_path / "short.ndjson", config, "test", grid=grid)
+        evaluate_prediction_file(tmp_path / "short.ndjson", config, "test")
 
 
 def test_scenes_the_model_cannot_read_row_for_row_are_refused_with_the_fix(tmp_path):

@@ -173,14 +173,31 @@ def load_scenes(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()
                                                  ((str(path), len(windows)),)), tracks)
 
 
+def rows_grid(config: DataConfig, split: str, grid: TimeGrid = TimeGrid()) -> TimeGrid:
+    """The time grid whose steps are the rows of the TrajNet++ file `split` of `config` holds
+    scenes of (at its own rate, or --fps), with `grid`'s observed and predicted steps: a
+    submission's, which steps once a row (WILDTRACK's 2 Hz: 0.5 s); `grid` where the data are
+    not one TrajNet++ file with scenes."""
+    path = trajnet_file(config, split)
+    if path is None:
+        return grid
+    rate = _row_rate(read_tracks(path, drop_off_grid=config.drop_off_grid), config, grid)
+    return dataclasses.replace(grid, step_s=1 / rate)
+
+
+def _row_rate(rows: Tracks, config: DataConfig, grid: TimeGrid) -> float:
+    """A file's rows per second: --fps frame ids a second, else its stated rate."""
+    return (config.fps or (rows.rate_hz or grid.hz) * rows.frame_step) / rows.frame_step
+
+
 def _check_rows_are_steps(path: Path, tracks: Tracks, config: DataConfig,
                           grid: TimeGrid) -> None:
     """TrajNet++ scores a scene's rows: the model's steps must be the file's rows."""
     rows = read_tracks(path, drop_off_grid=config.drop_off_grid)
     if tracks.frame_step == rows.frame_step and len(tracks.frames) == len(rows.frames):
         return
-    row_fps = config.fps or (rows.rate_hz or grid.hz) * rows.frame_step
-    rate = row_fps / rows.frame_step
+    rate = _row_rate(rows, config, grid)
+    row_fps = rate * rows.frame_step
     raise DataError(
         f"{path}: its rows are {1 / rate:g} s apart ({_frame_ids(rows.frame_step)} at "
         f"{row_fps:g} per second), the model's steps {grid.step_s:g} s: TrajNet++ scores its "

@@ -42,6 +42,7 @@ SPEED_RANGES: dict[str, tuple[float, float] | None] = {
     "univ_d": (0.25, 0.5), "univ_p": (0.25, 0.25),
     "zara1_d": (1.25, 1.5), "zara1_p": (1.25, 1.75),
     "zara2_d": None, "zara2_p": (1.0, 1.75),
+    "wildtrack_d": (0.75, 1.75),
 }
 
 
