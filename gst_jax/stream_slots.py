@@ -365,15 +365,16 @@ def _host_tree(tree):
 
 def _check_compile_time(capacities: list[int], compiled: dict[int, float],
                         max_compile_s: float | None) -> None:
-    """Refuse in one line where compiling the `capacities` not yet `compiled`, each in the
-    seconds the largest took, is expected to take longer than `max_compile_s`."""
-    left = [capacity for capacity in capacities if capacity not in compiled]
+    """Refuse in one line where compiling the `capacities` not compiled before (the largest,
+    just compiled, and those not yet), each in the seconds the largest took, is expected to
+    take longer than `max_compile_s`."""
+    programs = 1 + sum(capacity not in compiled for capacity in capacities)
     seconds = compiled[capacities[-1]]
-    if max_compile_s is None or seconds * len(left) <= max_compile_s:
+    if max_compile_s is None or seconds * programs <= max_compile_s:
         return
-    raise DataError(f"warm_up: {capacities[-1]} slots take {len(left) + 1} programs "
-                    f"(capacities {capacities[0]} to {capacities[-1]}), about "
-                    f"{seconds * (len(left) + 1):.0f} s at the {seconds:.1f} s the largest "
-                    f"took, beyond max_compile_s={max_compile_s:g}; warm up to the crowd you "
-                    "expect, or give a larger max_compile_s (None: no bound)")
+    raise DataError(f"warm_up: {capacities[-1]} slots take {programs} programs (capacities "
+                    f"{capacities[0]} to {capacities[-1]}), about {seconds * programs:.0f} s "
+                    f"at the {seconds:.1f} s the largest took, beyond max_compile_s="
+                    f"{max_compile_s:g}; warm up to the crowd you expect, or give a larger "
+                    "max_compile_s (None: no bound)")
 

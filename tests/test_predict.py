@@ -236,7 +236,7 @@ def test_predict_s_names_stay_importable_from_gst_jax_predict_where_they_moved()
 
     homes = {chunking: ["Chunking", "DEFAULT_MEMORY_BUDGET", "CHUNKING_SLACK"],
              cost: ["Estimate", "estimate", "operation_count", "CPU_RUNTIME_MARGIN"],
-             checks: ["check_compiler_room", "crowd_notice", "compile_checked",
+             checks: ["check_compiler_room", "check_memory", "crowd_notice", "compile_checked",
                       "COMPILER_BYTES", "SUGGESTED_CANDIDATES", "CANDIDATES_PAY_ABOVE",
                       "LONG_CALL_S", "CPU_OPERATIONS_PER_CORE_SECOND"],
              resources: ["available_memory", "cgroup_headroom", "CGROUP_ROOT", "NO_LIMIT"],

@@ -95,13 +95,13 @@ def crowd_notice(config: ModelConfig, slots: int, cost: Estimate | Chunking,
 
 
 def compile_checked(program, args: tuple, config: ModelConfig | None, slots: int, what: str,
-                    slower_than_s: float | None = None, fix: str | None = None) -> Estimate:
+                    slower_than_s: float | None = None) -> Estimate:
     """Before the jitted `program` first runs on `args` over a crowd of `slots` people (a
     stream's step at a new capacity, a chunk of navigation episodes): refuse in one line
     where the memory left cannot hold the compiler; compile it (jit's cache keeps it: the
     call that follows does not compile again); refuse in one line where XLA's estimate of a
-    call exceeds the memory available (`fix`: what to do then; default: fewer people, more
-    memory, and for a gst_jax model candidates); where `config` is a gst_jax model's, warn
+    call exceeds the memory available (the fix: fewer people, more memory, and for a gst_jax
+    model candidates); where `config` is a gst_jax model's, warn
     in one line where the crowd is large for the exact model and a call is expected to take
     `slower_than_s` or more (`crowd_notice`; a robot's stream: its model's step_s). Returns
     the estimate. `what` names the work in those lines ("a stream step over 320 slots")."""
@@ -110,9 +110,8 @@ def compile_checked(program, args: tuple, config: ModelConfig | None, slots: int
     check_compiler_room(what, devices[0])
     traced = program.trace(*args)
     cost = estimate(traced.lower().compile(), traced.jaxpr, devices)
-    check_memory(cost, devices[0], what, fix or (
-        "use fewer people or more memory" if config is None else
-        f"use fewer people, candidates={SUGGESTED_CANDIDATES} or more memory"))
+    check_memory(cost, devices[0], what, "use fewer people or more memory" if config is None
+                 else f"use fewer people, candidates={SUGGESTED_CANDIDATES} or more memory")
     if config is not None and (
             notice := crowd_notice(config, slots, cost, devices[0], what, slower_than_s)):
         warnings.warn(notice, stacklevel=2)
