@@ -366,8 +366,8 @@ class Stream:
         """Compile the step of every capacity this stream can grow to while it holds at most
         `max_people` tracks (those in view and those unseen for fewer than obs_len steps), so
         that no step compiles later; returns the capacities. Each is one program: with
-        CrowdNav++'s predictor and DtACI regions, 35 s for the six up to 64 on a loaded 2-core
-        CPU, 5.8 s from a warm `compilation_cache` (the programs read, each step traced)
+        CrowdNav++'s predictor and DtACI regions, 15-17 s for the six up to 64 on a quiet 2-core
+        CPU, 3.2-3.3 s from a warm `compilation_cache` (the programs read, each step traced)
         (docs/robot.md). The largest compiles first: a crowd whose step the memory cannot hold
         is refused in one line with XLA's estimate, and so is one whose compiles would take
         longer than `max_compile_s` in all (None: no bound), with the expected seconds. The
