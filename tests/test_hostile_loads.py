@@ -56,6 +56,21 @@ def not_regular(path: Path, kind: str) -> str:
     return f"{path} is {kind}, not a regular file: refused unread (name the file itself)"
 
 
+def assert_fifo_and_dev_zero_refused(path: Path, load) -> None:
+    """`load()` refuses, unread, a FIFO at `path` and then a link from `path` to /dev/zero;
+    `path` is left absent."""
+    with fifo(path):
+        with pytest.raises(DataError) as refused:
+            load()
+        assert str(refused.value) == not_regular(path, "a FIFO (named pipe)")
+    path.unlink()
+    path.symlink_to("/dev/zero")
+    with pytest.raises(DataError) as refused:
+        load()
+    assert str(refused.value) == not_regular(path, "a character device (a link to /dev/zero)")
+    path.unlink()
+
+
 def test_a_fifo_as_weights_or_config_is_refused_unread(tmp_path):
     folder = weights_folder(tmp_path / "safetensors")
     (folder / weights.WEIGHTS_FILE).unlink()
@@ -91,27 +106,11 @@ def test_a_fifo_or_a_device_as_crowdnav_args_or_checkpoint_is_refused_unread(tmp
     root = crowdnav_checkpoint(tmp_path / "args")
     args = root / "checkpoint" / "args.pickle"
     args.unlink()
-    with fifo(args):
-        with pytest.raises(DataError) as refused:
-            crowdnav.load(root)
-        assert str(refused.value) == not_regular(args, "a FIFO (named pipe)")
-    args.unlink()
-    args.symlink_to("/dev/zero")
-    with pytest.raises(DataError) as refused:
-        crowdnav.load(root)
-    assert str(refused.value) == not_regular(args, "a character device (a link to /dev/zero)")
+    assert_fifo_and_dev_zero_refused(args, lambda: crowdnav.load(root))
 
     root = crowdnav_checkpoint(tmp_path / "pt")
     pt = root / "checkpoint" / "epoch_100.pt"
-    with fifo(pt):
-        with pytest.raises(DataError) as refused:
-            crowdnav.load(root)
-        assert str(refused.value) == not_regular(pt, "a FIFO (named pipe)")
-    pt.unlink()
-    pt.symlink_to("/dev/zero")
-    with pytest.raises(DataError) as refused:
-        crowdnav.load(root)
-    assert str(refused.value) == not_regular(pt, "a character device (a link to /dev/zero)")
+    assert_fifo_and_dev_zero_refused(pt, lambda: crowdnav.load(root))
 
 
 def test_a_config_past_its_bound_is_refused_unread(tmp_path):
@@ -166,16 +165,7 @@ def test_a_fifo_a_device_or_a_file_past_its_bound_as_a_saved_stream_is_refused_u
     it read 8 bytes of (a header of 0 bytes), a 1 GiB file it began to read."""
     stream = Stream(ConstantVelocity(obs_len=8, pred_len=12), step_s=0.4)
     saved = tmp_path / "stream.safetensors"
-    with fifo(saved):
-        with pytest.raises(DataError) as refused:
-            stream.load(saved)
-        assert str(refused.value) == not_regular(saved, "a FIFO (named pipe)")
-    saved.unlink()
-    saved.symlink_to("/dev/zero")
-    with pytest.raises(DataError) as refused:
-        stream.load(saved)
-    assert str(refused.value) == not_regular(saved, "a character device (a link to /dev/zero)")
-    saved.unlink()
+    assert_fifo_and_dev_zero_refused(saved, lambda: stream.load(saved))
     stream.save(saved)
     os.truncate(saved, 2**30 + 1)                       # sparse: nothing written
     with pytest.raises(DataError) as refused:
